@@ -1,0 +1,119 @@
+"""The `detmatch` command: one thin function per subcommand, delegating to the library."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from detmatch.data.synth import generate_dataset
+
+    generate_dataset(
+        out_dir=Path(args.out),
+        num_frames=args.frames,
+        seed=args.seed,
+        resolution=args.resolution,
+        workers=args.workers,
+        val_fraction=args.val_fraction,
+        progress=not args.quiet,
+    )
+    print(f"wrote {args.frames} frames to {args.out}")
+    return 0
+
+
+def _split(args: argparse.Namespace) -> int:
+    from detmatch.data.splits import make_split
+
+    result = make_split(Path(args.data), args.fraction, args.seed, source_split=args.source)
+    print(
+        f"labeled:   {result.num_labeled:6d} frames -> {result.labeled_path}\n"
+        f"unlabeled: {result.num_unlabeled:6d} frames -> {result.unlabeled_path}"
+    )
+    return 0
+
+
+def _show(args: argparse.Namespace) -> int:
+    from detmatch.data.kitti import KittiDataset, read_objects
+    from detmatch.data.visualize import save_frame_picture
+
+    dataset = KittiDataset(Path(args.data))
+    frame = dataset.load_frame(args.frame)
+    predictions = None
+    if args.predictions:
+        predictions = read_objects(Path(args.predictions) / f"{args.frame}.txt")
+    save_frame_picture(frame, Path(args.out), predictions=predictions)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from detmatch.data.kitti import read_image_set
+    from detmatch.eval.kitti import evaluate_dirs, format_table
+
+    ids = read_image_set(args.ids_file)
+    classes = [c.strip() for c in args.classes.split(",") if c.strip()]
+    results = evaluate_dirs(Path(args.gt_dir), Path(args.pred_dir), ids, classes)
+    print(format_table(results))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="detmatch", description="Joint 2D-3D semi-supervised detection (DetMatch)."
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    synth = commands.add_parser("synth", help="generate a synthetic paired camera + LiDAR data set")
+    synth.add_argument("--out", required=True, help="output directory (KITTI layout)")
+    synth.add_argument("--frames", type=int, required=True, help="number of frames")
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--resolution", choices=("full", "half"), default="half",
+                       help="full = 1242x375 (KITTI), half = 621x188")  # fmt: skip
+    synth.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    synth.add_argument("--val-fraction", type=float, default=0.25,
+                       help="fraction of frames in ImageSets/val.txt")  # fmt: skip
+    synth.add_argument("--quiet", action="store_true", help="no progress bar")
+    synth.set_defaults(handler=_synth)
+
+    split = commands.add_parser("split", help="write a labeled / unlabeled split of the train frames")
+    split.add_argument("--data", required=True, help="KITTI-layout data set root")
+    split.add_argument("--fraction", type=float, required=True, help="labeled fraction in (0, 1)")
+    split.add_argument("--seed", type=int, default=0)
+    split.add_argument("--source", default="train", help="ImageSets split to divide")
+    split.set_defaults(handler=_split)
+
+    show = commands.add_parser("show", help="render a frame: image with 2D boxes + bird's-eye view")
+    show.add_argument("--data", required=True, help="KITTI-layout data set root")
+    show.add_argument("--frame", required=True, help="frame id, e.g. 000001")
+    show.add_argument("--out", required=True, help="output PNG")
+    show.add_argument("--predictions", help="directory of KITTI result files to overlay (dashed)")
+    show.set_defaults(handler=_show)
+
+    evaluate = commands.add_parser("eval", help="KITTI object-benchmark evaluation")
+    evaluate.add_argument("--gt-dir", required=True, help="directory of KITTI label files")
+    evaluate.add_argument("--pred-dir", required=True, help="directory of KITTI result files")
+    evaluate.add_argument("--ids-file", required=True, help="ImageSets file of frame ids")
+    evaluate.add_argument("--classes", default="Car,Pedestrian,Cyclist")
+    evaluate.add_argument("--json", help="write the results as JSON here")
+    evaluate.set_defaults(handler=_eval)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (FileNotFoundError, ValueError) as error:
+        print(f"detmatch {args.command}: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

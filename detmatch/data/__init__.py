@@ -1,0 +1,1 @@
+"""Data: KITTI layout I/O, the synthetic paired data set, splits and pictures."""

@@ -1,0 +1,1 @@
+"""Evaluation: KITTI object-benchmark AP and pseudo-label quality."""
