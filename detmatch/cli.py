@@ -82,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(handler=_synth)
 
-    split = commands.add_parser("split", help="write a labeled / unlabeled split of the train frames")
+    split = commands.add_parser(
+        "split", help="write a labeled / unlabeled split of the train frames"
+    )
     split.add_argument("--data", required=True, help="KITTI-layout data set root")
     split.add_argument("--fraction", type=float, required=True, help="labeled fraction in (0, 1)")
     split.add_argument("--seed", type=int, default=0)

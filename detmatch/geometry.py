@@ -34,7 +34,11 @@ def rotation_z(yaw: np.ndarray) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     zeros, ones = np.zeros_like(c), np.ones_like(c)
     return np.stack(
-        [np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)],
+        [
+            np.stack([c, -s, zeros], -1),
+            np.stack([s, c, zeros], -1),
+            np.stack([zeros, zeros, ones], -1),
+        ],
         axis=-2,
     )
 
@@ -108,7 +112,11 @@ def boxes_in_image_mask(
     width, height = image_size
     uv, depth = lidar_to_image(box3d_corners(boxes), calib)
     inside = (
-        (depth > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < height)
+        (depth > 0)
+        & (uv[..., 0] >= 0)
+        & (uv[..., 0] < width)
+        & (uv[..., 1] >= 0)
+        & (uv[..., 1] < height)
     )
     return inside.sum(axis=1) >= min_corners
 
@@ -136,7 +144,7 @@ def kitti_camera_to_lidar_boxes(
 def lidar_to_kitti_camera_boxes(
     boxes: np.ndarray, calib: Calibration
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, 7) LiDAR boxes -> (location (N, 3) camera bottom centre, (N, 3) h w l, (N,) rotation_y)."""
+    """(N, 7) LiDAR boxes -> ((N, 3) camera bottom centre, (N, 3) h w l, (N,) rotation_y)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     bottom = boxes[:, 0:3].copy()
     bottom[:, 2] -= boxes[:, 5] / 2
@@ -281,7 +289,9 @@ def convex_quad_intersection_area(quads1: np.ndarray, quads2: np.ndarray) -> np.
     return np.where(count >= 3, 0.5 * np.abs(twice_area), 0.0)
 
 
-def paired_bev_intersection(boxes1: np.ndarray, boxes2: np.ndarray, chunk: int = 65536) -> np.ndarray:
+def paired_bev_intersection(
+    boxes1: np.ndarray, boxes2: np.ndarray, chunk: int = 65536
+) -> np.ndarray:
     """(K, 7), (K, 7) boxes -> (K,) rotated bird's-eye-view intersection areas of row pairs."""
     boxes1 = np.asarray(boxes1, dtype=np.float64).reshape(-1, 7)
     boxes2 = np.asarray(boxes2, dtype=np.float64).reshape(-1, 7)
@@ -293,7 +303,9 @@ def paired_bev_intersection(boxes1: np.ndarray, boxes2: np.ndarray, chunk: int =
     candidates = np.flatnonzero(distance < radius1 + radius2)
     for start in range(0, candidates.size, chunk):
         rows = candidates[start : start + chunk]
-        areas[rows] = convex_quad_intersection_area(bev_corners(boxes1[rows]), bev_corners(boxes2[rows]))
+        areas[rows] = convex_quad_intersection_area(
+            bev_corners(boxes1[rows]), bev_corners(boxes2[rows])
+        )
     return areas
 
 

@@ -90,7 +90,8 @@ class Calibration:
     """KITTI calibration of one frame.
 
     P2: (3, 4) rectified camera 2 projection; R0_rect: (3, 3) rectifying rotation;
-    Tr_velo_to_cam: (3, 4) LiDAR -> reference camera. lidar -> image = P2 . R0_rect . Tr_velo_to_cam.
+    Tr_velo_to_cam: (3, 4) LiDAR -> reference camera.
+    lidar -> image = P2 . R0_rect . Tr_velo_to_cam.
     """
 
     P2: np.ndarray

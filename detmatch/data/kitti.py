@@ -48,9 +48,7 @@ class KittiFormatError(ValueError):
 def validate_frame_id(frame_id: str) -> str:
     """Frame ids are file stems: letters, digits, '_' and '-', at most 64 characters."""
     if not isinstance(frame_id, str) or not FRAME_ID_PATTERN.match(frame_id):
-        raise ValueError(
-            f"invalid frame id {frame_id!r}: use 1-64 letters, digits, '_' or '-'"
-        )
+        raise ValueError(f"invalid frame id {frame_id!r}: use 1-64 letters, digits, '_' or '-'")
     return frame_id
 
 
@@ -200,7 +198,9 @@ def objects_to_labels(objects: KittiObjects, calib: Calibration) -> Labels:
     )
 
 
-def labels_to_objects(labels: Labels, calib: Calibration, has_3d: np.ndarray | None = None) -> KittiObjects:
+def labels_to_objects(
+    labels: Labels, calib: Calibration, has_3d: np.ndarray | None = None
+) -> KittiObjects:
     """Project Labels -> file rows. Rows where has_3d is False (default: DontCare rows and boxes
     of zero size) get KITTI's placeholder 3D fields."""
     n = len(labels)
@@ -246,7 +246,9 @@ def read_calib_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
             raise KittiFormatError(path, number, f"non-numeric value for {key}: {error}") from None
         expected = CALIB_SIZES.get(key)
         if expected is not None and values.size != expected:
-            raise KittiFormatError(path, number, f"{key} needs {expected} numbers, found {values.size}")
+            raise KittiFormatError(
+                path, number, f"{key} needs {expected} numbers, found {values.size}"
+            )
         if not np.all(np.isfinite(values)):
             raise KittiFormatError(path, number, f"NaN or Inf in {key}")
         matrices[key] = values
@@ -279,7 +281,9 @@ def write_calib(
     for key, value in (extra or {}).items():
         if key not in ("P2", "R0_rect", "Tr_velo_to_cam"):
             matrices[key] = np.asarray(value, dtype=np.float64).reshape(-1)
-    text = "".join(f"{key}: {' '.join(f'{v:.12e}' for v in value)}\n" for key, value in matrices.items())
+    text = "".join(
+        f"{key}: {' '.join(f'{v:.12e}' for v in value)}\n" for key, value in matrices.items()
+    )
     atomic_write_bytes(path, text.encode())
 
 
@@ -287,7 +291,9 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     """(N, 4) float32 x, y, z, intensity from a little-endian float32 .bin file."""
     raw = Path(path).read_bytes()
     if len(raw) % 16:
-        raise KittiFormatError(path, None, f"size {len(raw)} bytes is not a multiple of 16 (N x 4 float32)")
+        raise KittiFormatError(
+            path, None, f"size {len(raw)} bytes is not a multiple of 16 (N x 4 float32)"
+        )
     points = np.frombuffer(raw, dtype="<f4").reshape(-1, 4).astype(np.float32)
     if not np.all(np.isfinite(points)):
         raise KittiFormatError(path, None, "NaN or Inf in the point cloud")
@@ -340,7 +346,7 @@ def write_image_set(path: str | os.PathLike, ids: list[str]) -> None:
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write via a temporary file in the same directory and rename: readers never see half a file."""
+    """Write to a temporary file in the same directory, then rename: no reader sees half a file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -371,7 +377,9 @@ class KittiDataset:
         self.root = Path(root)
         self.split_dir = split_dir
         if not (self.root / split_dir).is_dir():
-            raise FileNotFoundError(f"{self.root} has no {split_dir}/ directory (KITTI layout expected)")
+            raise FileNotFoundError(
+                f"{self.root} has no {split_dir}/ directory (KITTI layout expected)"
+            )
 
     def _path(self, kind: str, frame_id: str, suffix: str) -> Path:
         return self.root / self.split_dir / kind / f"{validate_frame_id(frame_id)}{suffix}"
@@ -426,4 +434,6 @@ def write_frame(root: str | os.PathLike, frame: Frame, split_dir: str = "trainin
     write_points(base / "velodyne" / f"{frame_id}.bin", frame.points)
     write_calib(base / "calib" / f"{frame_id}.txt", frame.calib)
     if frame.labels is not None:
-        write_objects(base / "label_2" / f"{frame_id}.txt", labels_to_objects(frame.labels, frame.calib))
+        write_objects(
+            base / "label_2" / f"{frame_id}.txt", labels_to_objects(frame.labels, frame.calib)
+        )
