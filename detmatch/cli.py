@@ -64,6 +64,41 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace) -> int:
+    from detmatch.config import load_config
+    from detmatch.training.distributed import init_distributed, shutdown_distributed
+    from detmatch.training.trainer import SupervisedTrainer
+
+    config = load_config(args.config)
+    if args.data:
+        config = config.replace("data", root=args.data)
+    if args.steps is not None:
+        config = config.replace("train", steps=args.steps)
+    context = init_distributed()
+    try:
+        trainer = SupervisedTrainer(config, Path(args.out), context)
+        if args.resume and trainer.resume() and context.is_main:
+            print(f"resumed {args.out} at step {trainer.state.step}")
+        state = trainer.run()
+        if context.is_main:
+            print(json.dumps({"step": state.step, "metrics": _headline(state.metrics)}, indent=2))
+    finally:
+        shutdown_distributed()
+    return 0
+
+
+def _headline(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if not k.startswith("full_")}
+
+
+def _predict(args: argparse.Namespace) -> int:
+    from detmatch.training.predict import predict_split
+
+    count = predict_split(Path(args.checkpoint), Path(args.data), args.split, Path(args.out))
+    print(f"wrote predictions for {count} frames to {args.out}/3d and {args.out}/2d")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="detmatch", description="Joint 2D-3D semi-supervised detection (DetMatch)."
@@ -97,6 +132,23 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--out", required=True, help="output PNG")
     show.add_argument("--predictions", help="directory of KITTI result files to overlay (dashed)")
     show.set_defaults(handler=_show)
+
+    train = commands.add_parser("train", help="train the 2D and 3D detectors")
+    train.add_argument("--config", required=True, help="TOML config (see configs/)")
+    train.add_argument("--data", help="data set root; overrides [data] root")
+    train.add_argument("--out", required=True, help="run directory: checkpoints, metrics.jsonl")
+    train.add_argument(
+        "--resume", action="store_true", help="continue from the run's latest checkpoint"
+    )
+    train.add_argument("--steps", type=int, help="override [train] steps")
+    train.set_defaults(handler=_train)
+
+    predict = commands.add_parser("predict", help="write KITTI result files of both detectors")
+    predict.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
+    predict.add_argument("--data", required=True, help="KITTI-layout data set root")
+    predict.add_argument("--split", required=True, help="ImageSets split, e.g. val")
+    predict.add_argument("--out", required=True, help="output directory (gets 3d/ and 2d/)")
+    predict.set_defaults(handler=_predict)
 
     evaluate = commands.add_parser("eval", help="KITTI object-benchmark evaluation")
     evaluate.add_argument("--gt-dir", required=True, help="directory of KITTI label files")

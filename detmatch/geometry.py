@@ -104,6 +104,19 @@ def project_boxes_to_image(
     return xyxy
 
 
+def points_in_image(
+    points: np.ndarray, calib: Calibration, image_size: tuple[int, int], check_rows: bool = True
+) -> np.ndarray:
+    """(N, 3) LiDAR points -> (N,) bool: in front of the camera and inside the image's columns
+    (and rows, with check_rows). image_size is (W, H)."""
+    uv, depth = lidar_to_image(points, calib)
+    width, height = image_size
+    inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width)
+    if check_rows:
+        inside &= (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    return inside
+
+
 def boxes_in_image_mask(
     boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int], min_corners: int = 1
 ) -> np.ndarray:

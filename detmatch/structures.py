@@ -227,3 +227,32 @@ class Frame:
     def image_size(self) -> tuple[int, int]:
         """(W, H) in pixels."""
         return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+@dataclass(frozen=True)
+class Detections:
+    """One frame's detections of one modality, in the un-augmented frame.
+
+    boxes: (N, 4) xyxy original-image pixels (2D) or (N, 7) LiDAR boxes (3D);
+    scores: (N,) max class probability; classes: (N,) class ids; probabilities: (N, C).
+    """
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    classes: np.ndarray
+    probabilities: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.scores)
+        if self.boxes.ndim != 2 or self.boxes.shape[1] not in (4, 7) or len(self.boxes) != n:
+            raise ValueError(f"Detections.boxes expects (N, 4) or (N, 7), got {self.boxes.shape}")
+        if len(self.classes) != n or self.probabilities.ndim != 2 or len(self.probabilities) != n:
+            raise ValueError("Detections fields disagree on the number of boxes")
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+    def __getitem__(self, index: np.ndarray | slice) -> Detections:
+        return Detections(
+            self.boxes[index], self.scores[index], self.classes[index], self.probabilities[index]
+        )

@@ -1,0 +1,183 @@
+"""Experiment configuration: frozen dataclasses loaded from TOML; unknown keys are errors.
+
+A config file has one table per section below ([data], [detector2d], [detector3d], [train]);
+every key is optional and defaults to the values here. Loss weights and learning rates are
+named fields, never string lookups.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+
+class ConfigError(ValueError):
+    """A config file with an unknown key, a wrong type or an invalid value."""
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Where the frames are and which classes the detectors learn."""
+
+    root: str = "data/synth"
+    train_split: str = "train"
+    val_split: str = "val"
+    classes: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+    # Images are resized to this (W, H) before the 2D detector; boxes are mapped back.
+    image_size: tuple[int, int] = (624, 192)
+    num_workers: int = 0
+
+
+@dataclass(frozen=True)
+class Detector2DConfig:
+    """CenterNet-style camera detector: strided conv backbone, stride-4 heads."""
+
+    widths: tuple[int, ...] = (16, 32, 64, 128)
+    depths: tuple[int, ...] = (1, 1, 2, 2)
+    head_width: int = 64
+    max_detections: int = 50
+    score_threshold: float = 0.1
+    heatmap_weight: float = 1.0
+    size_weight: float = 0.1
+    offset_weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class Detector3DConfig:
+    """PointPillars encoder + CenterPoint-style head. Ranges in metres, LiDAR frame."""
+
+    point_cloud_range: tuple[float, ...] = (0.0, -32.0, -3.0, 64.0, 32.0, 1.0)
+    pillar_size: tuple[float, float] = (0.25, 0.25)
+    max_points_per_pillar: int = 20
+    max_pillars: int = 16000
+    pillar_channels: int = 32
+    widths: tuple[int, ...] = (32, 64, 128)
+    depths: tuple[int, ...] = (2, 3, 3)
+    head_width: int = 64
+    # The head's output stride relative to the pillar grid.
+    out_stride: int = 2
+    max_detections: int = 50
+    score_threshold: float = 0.1
+    heatmap_weight: float = 1.0
+    regression_weight: float = 0.25
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation (DESIGN.md section 3): SGD for 2D, AdamW for 3D, warm-up then constant."""
+
+    steps: int = 2000
+    batch_size: int = 4
+    lr_2d: float = 0.01
+    lr_3d: float = 0.002
+    momentum_2d: float = 0.9
+    weight_decay_2d: float = 1e-4
+    betas_3d: tuple[float, float] = (0.95, 0.99)
+    weight_decay_3d: float = 0.01
+    warmup_steps: int = 100
+    grad_clip: float = 10.0
+    eval_every: int = 500
+    checkpoint_every: int = 250
+    log_every: int = 10
+    seed: int = 0
+    flip_probability: float = 0.5
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    data: DataConfig = field(default_factory=DataConfig)
+    detector2d: Detector2DConfig = field(default_factory=Detector2DConfig)
+    detector3d: Detector3DConfig = field(default_factory=Detector3DConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def replace(self, section: str, **changes: Any) -> ExperimentConfig:
+        """A copy with some fields of one section changed (validated like a file)."""
+        current = dataclasses.asdict(getattr(self, section))
+        unknown = set(changes) - set(current)
+        if unknown:
+            raise ConfigError(f"[{section}] has no key {sorted(unknown)[0]!r}")
+        current.update(changes)
+        section_type = type(getattr(self, section))
+        return dataclasses.replace(self, **{section: _build(section_type, current, section)})
+
+
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    origin = typing.get_origin(annotation)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where} must be a list, got {value!r}")
+        args = typing.get_args(annotation)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], where) for v in value)
+        if len(value) != len(args):
+            raise ConfigError(f"{where} needs {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, where) for v, a in zip(value, args, strict=True))
+    if origin in (typing.Union, types.UnionType):
+        return value
+    if annotation is float and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    if annotation in (int, str, bool) and type(value) is not annotation:
+        raise ConfigError(f"{where} must be {annotation.__name__}, got {value!r}")
+    return value
+
+
+def _build(section_type: type, values: dict[str, Any], section: str) -> Any:
+    hints = typing.get_type_hints(section_type)
+    known = {f.name for f in dataclasses.fields(section_type)}
+    for key in values:
+        if key not in known:
+            raise ConfigError(
+                f"unknown key {key!r} in [{section}]; known keys: {', '.join(sorted(known))}"
+            )
+    kwargs = {k: _coerce(v, hints[k], f"[{section}] {k}") for k, v in values.items()}
+    return section_type(**kwargs)
+
+
+def config_from_dict(raw: dict[str, Any]) -> ExperimentConfig:
+    sections = {f.name: f.type for f in dataclasses.fields(ExperimentConfig)}
+    hints = typing.get_type_hints(ExperimentConfig)
+    built = {}
+    for name, values in raw.items():
+        if name not in sections:
+            raise ConfigError(f"unknown section [{name}]; known sections: {', '.join(sections)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"[{name}] must be a table")
+        built[name] = _build(hints[name], values, name)
+    return ExperimentConfig(**built)
+
+
+def load_config(path: str | Path) -> ExperimentConfig:
+    """Read a TOML config; unknown sections or keys raise ConfigError naming them."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: {error}") from None
+    try:
+        return config_from_dict(raw)
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None
+
+
+def config_to_dict(config: ExperimentConfig) -> dict[str, Any]:
+    """Plain nested dict (tuples as lists): for checkpoints and manifests."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, tuple | list):
+            return [plain(v) for v in value]
+        return value
+
+    return {
+        section: {k: plain(v) for k, v in dataclasses.asdict(getattr(config, section)).items()}
+        for section in ("data", "detector2d", "detector3d", "train")
+    }

@@ -1,0 +1,1 @@
+"""Detectors. `pillars` is numpy-only (serving imports it); the detectors need torch."""

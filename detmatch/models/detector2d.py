@@ -1,0 +1,193 @@
+"""CenterNet-style camera detector in plain PyTorch.
+
+forward(image) -> raw head maps; decode(maps) -> boxes, scores, classes, per-class
+probabilities. Both take and return tensors only, so `Detector2DExport` chains them into one
+ONNX graph. Boxes are in the pixels of the network input; callers scale to the original image.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from detmatch.config import Detector2DConfig
+from detmatch.models.common import (
+    HEATMAP_PRIOR_BIAS,
+    draw_gaussian,
+    gather_at,
+    gaussian_radius,
+    head,
+    heatmap_focal_loss,
+    heatmap_peaks,
+    stage,
+)
+
+IMAGE_MEAN = (0.485, 0.456, 0.406)
+IMAGE_STD = (0.229, 0.224, 0.225)
+
+
+class CenterNet2D(nn.Module):
+    """Stride-4 CenterNet: heatmap (C), size (w, h in stride-4 cells) and sub-cell offset heads."""
+
+    stride = 4
+
+    def __init__(self, config: Detector2DConfig, num_classes: int) -> None:
+        super().__init__()
+        if len(config.widths) != 4 or len(config.depths) != 4:
+            raise ValueError("detector2d.widths and .depths need 4 entries (strides 2, 4, 8, 16)")
+        self.config = config
+        self.num_classes = num_classes
+        widths = config.widths
+        self.register_buffer("mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1) * 255.0)
+        self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1) * 255.0)
+        self.stages = nn.ModuleList(
+            stage(c_in, c_out, depth, stride=2)
+            for c_in, c_out, depth in zip((3, *widths[:-1]), widths, config.depths, strict=True)
+        )
+        # Top-down path back to stride 4.
+        self.lateral8 = nn.Conv2d(widths[2], widths[3], 1)
+        self.lateral4 = nn.Conv2d(widths[1], widths[3], 1)
+        self.smooth = nn.Sequential(
+            nn.Conv2d(widths[3], config.head_width, 3, padding=1, bias=False),
+            nn.BatchNorm2d(config.head_width),
+            nn.ReLU(inplace=True),
+        )
+        self.heatmap_head = head(
+            config.head_width, config.head_width, num_classes, HEATMAP_PRIOR_BIAS
+        )
+        self.size_head = head(config.head_width, config.head_width, 2)
+        self.offset_head = head(config.head_width, config.head_width, 2)
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """image: (B, 3, H, W) RGB in [0, 255], H and W multiples of 16.
+
+        Returns heatmap logits (B, C, H/4, W/4), size (B, 2, H/4, W/4), offset (B, 2, H/4, W/4).
+        """
+        x = (image - self.mean) / self.std
+        features = []
+        for block in self.stages:
+            x = block(x)
+            features.append(x)
+        top = features[3]
+        top = F.interpolate(top, size=features[2].shape[-2:], mode="nearest") + self.lateral8(
+            features[2]
+        )
+        top = F.interpolate(top, size=features[1].shape[-2:], mode="nearest") + self.lateral4(
+            features[1]
+        )
+        shared = self.smooth(top)
+        return self.heatmap_head(shared), self.size_head(shared), self.offset_head(shared)
+
+    def decode(
+        self, heatmap: torch.Tensor, size: torch.Tensor, offset: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Head maps -> boxes (B, K, 4) xyxy input pixels, scores (B, K), classes (B, K),
+        probabilities (B, K, C). Differentiable in the gathered values."""
+        width = heatmap.shape[3]
+        scores, classes, pixel, probabilities = heatmap_peaks(
+            torch.sigmoid(heatmap), self.config.max_detections
+        )
+        ys = torch.div(pixel, width, rounding_mode="floor")
+        xs = pixel - ys * width
+        box_size = gather_at(size, pixel).clamp(min=0.0)
+        box_offset = gather_at(offset, pixel)
+        centre_x = (xs.to(heatmap.dtype) + box_offset[..., 0]) * self.stride
+        centre_y = (ys.to(heatmap.dtype) + box_offset[..., 1]) * self.stride
+        half_w = box_size[..., 0] * self.stride / 2
+        half_h = box_size[..., 1] * self.stride / 2
+        boxes = torch.stack(
+            [centre_x - half_w, centre_y - half_h, centre_x + half_w, centre_y + half_h], -1
+        )
+        return boxes, scores, classes, probabilities
+
+    def build_targets(
+        self, boxes: np.ndarray, labels: np.ndarray, input_size: tuple[int, int]
+    ) -> dict[str, np.ndarray]:
+        """Ground truth for one image. boxes: (N, 4) xyxy input pixels; labels: (N,) class ids;
+        input_size: (W, H). Returns heatmap (C, h, w), and per-object index / size / offset."""
+        out_w, out_h = input_size[0] // self.stride, input_size[1] // self.stride
+        heatmap = np.zeros((self.num_classes, out_h, out_w), dtype=np.float32)
+        index, box_size, box_offset = [], [], []
+        for box, label in zip(np.asarray(boxes, dtype=np.float64), labels, strict=True):
+            w, h = (box[2] - box[0]) / self.stride, (box[3] - box[1]) / self.stride
+            if w <= 0 or h <= 0:
+                continue
+            centre = np.array([(box[0] + box[2]) / 2, (box[1] + box[3]) / 2]) / self.stride
+            cell = np.floor(centre).astype(int)
+            if not (0 <= cell[0] < out_w and 0 <= cell[1] < out_h):
+                continue
+            radius = max(0, int(gaussian_radius(math.ceil(h), math.ceil(w), 0.7)))
+            draw_gaussian(heatmap[int(label)], cell[0], cell[1], radius)
+            index.append(cell[1] * out_w + cell[0])
+            box_size.append((w, h))
+            box_offset.append(centre - cell)
+        return {
+            "heatmap": heatmap,
+            "index": np.asarray(index, dtype=np.int64),
+            "size": np.asarray(box_size, dtype=np.float32).reshape(-1, 2),
+            "offset": np.asarray(box_offset, dtype=np.float32).reshape(-1, 2),
+        }
+
+    def loss(
+        self,
+        outputs: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        targets: list[dict[str, np.ndarray]],
+        box_regression: bool = True,
+    ) -> dict[str, torch.Tensor]:
+        """Losses against per-image targets from build_targets. Without box_regression only the
+        classification (heatmap) loss is returned: the pseudo-label loss of DESIGN.md section 3."""
+        heatmap, size, offset = outputs
+        target_heatmap = torch.from_numpy(np.stack([t["heatmap"] for t in targets])).to(
+            heatmap.device
+        )
+        losses = {
+            "heatmap": self.config.heatmap_weight * heatmap_focal_loss(heatmap, target_heatmap)
+        }
+        if box_regression:
+            losses.update(regression_losses(size, offset, targets, self.config))
+        return losses
+
+
+def regression_losses(
+    size: torch.Tensor,
+    offset: torch.Tensor,
+    targets: list[dict[str, np.ndarray]],
+    config: Detector2DConfig,
+) -> dict[str, torch.Tensor]:
+    """L1 on size and offset at the object centres, averaged over objects."""
+    size_terms, offset_terms = [], []
+    for b, target in enumerate(targets):
+        if len(target["index"]) == 0:
+            continue
+        index = torch.from_numpy(target["index"]).to(size.device)
+        predicted_size = size[b].flatten(1)[:, index].t()
+        predicted_offset = offset[b].flatten(1)[:, index].t()
+        size_terms.append(
+            F.l1_loss(predicted_size, torch.from_numpy(target["size"]), reduction="sum")
+        )
+        offset_terms.append(
+            F.l1_loss(predicted_offset, torch.from_numpy(target["offset"]), reduction="sum")
+        )
+    count = max(sum(len(t["index"]) for t in targets), 1)
+    zero = size.sum() * 0.0
+    return {
+        "size": config.size_weight * (sum(size_terms, zero) / count),
+        "offset": config.offset_weight * (sum(offset_terms, zero) / count),
+    }
+
+
+class Detector2DExport(nn.Module):
+    """Image in, decoded detections out: the graph exported to ONNX."""
+
+    def __init__(self, detector: CenterNet2D) -> None:
+        super().__init__()
+        self.detector = detector
+
+    def forward(
+        self, image: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.detector.decode(*self.detector(image))

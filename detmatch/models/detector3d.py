@@ -1,0 +1,263 @@
+"""PointPillars encoder + CenterPoint-style head in plain PyTorch.
+
+Pillars come from `detmatch.models.pillars.pillarize` (numpy, shared with serving). forward
+takes pillar tensors and returns raw head maps; decode turns maps into LiDAR-frame boxes with
+per-class probabilities. `Detector3DExport` chains both for ONNX.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from detmatch.config import Detector3DConfig
+from detmatch.models.common import (
+    HEATMAP_PRIOR_BIAS,
+    draw_gaussian,
+    gather_at,
+    gaussian_radius,
+    head,
+    heatmap_focal_loss,
+    heatmap_peaks,
+    stage,
+)
+from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid
+
+# Regression channels: x, y offsets in the cell, z, log l, log w, log h, sin yaw, cos yaw.
+REGRESSION_CHANNELS = 8
+
+
+def pillar_grid(config: Detector3DConfig) -> PillarGrid:
+    return PillarGrid(
+        config.point_cloud_range,
+        config.pillar_size,
+        config.max_points_per_pillar,
+        config.max_pillars,
+    )
+
+
+class PillarFeatureNet(nn.Module):
+    """Linear + BN + ReLU on each point, max over the pillar's points."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(PILLAR_FEATURES, channels, bias=False)
+        self.norm = nn.BatchNorm1d(channels)
+
+    def forward(self, features: torch.Tensor, num_points: torch.Tensor) -> torch.Tensor:
+        """features (P, M, 9), num_points (P,) -> (P, channels)."""
+        pillars, max_points, _ = features.shape
+        x = self.linear(features.reshape(pillars * max_points, PILLAR_FEATURES))
+        x = F.relu(self.norm(x)).reshape(pillars, max_points, -1)
+        valid = torch.arange(max_points, device=features.device).unsqueeze(
+            0
+        ) < num_points.unsqueeze(1)
+        return (x * valid.unsqueeze(-1).to(x.dtype)).amax(dim=1)
+
+
+class PointPillars3D(nn.Module):
+    """Pillar encoder -> BEV pseudo-image -> multi-scale backbone -> CenterPoint heads."""
+
+    def __init__(self, config: Detector3DConfig, num_classes: int) -> None:
+        super().__init__()
+        if len(config.widths) != len(config.depths):
+            raise ValueError("detector3d.widths and .depths must have the same length")
+        self.config = config
+        self.num_classes = num_classes
+        self.grid = pillar_grid(config)
+        ny, nx = self.grid.shape
+        total_stride = 2 ** len(config.widths)
+        if ny % total_stride or nx % total_stride:
+            raise ValueError(
+                f"the pillar grid {ny}x{nx} must divide by the backbone's stride {total_stride}"
+            )
+        if config.out_stride not in (2**i for i in range(1, len(config.widths) + 1)):
+            raise ValueError(
+                f"out_stride must be one of the backbone strides, got {config.out_stride}"
+            )
+        self.encoder = PillarFeatureNet(config.pillar_channels)
+        self.stages = nn.ModuleList(
+            stage(c_in, c_out, depth, stride=2)
+            for c_in, c_out, depth in zip(
+                (config.pillar_channels, *config.widths[:-1]),
+                config.widths,
+                config.depths,
+                strict=True,
+            )
+        )
+        self.merge = nn.ModuleList(
+            nn.Conv2d(width, config.head_width, 1) for width in config.widths
+        )
+        self.neck = nn.Sequential(
+            nn.Conv2d(config.head_width, config.head_width, 3, padding=1, bias=False),
+            nn.BatchNorm2d(config.head_width),
+            nn.ReLU(inplace=True),
+        )
+        self.heatmap_head = head(
+            config.head_width, config.head_width, num_classes, HEATMAP_PRIOR_BIAS
+        )
+        self.regression_head = head(config.head_width, config.head_width, REGRESSION_CHANNELS)
+
+    @property
+    def output_shape(self) -> tuple[int, int]:
+        ny, nx = self.grid.shape
+        return ny // self.config.out_stride, nx // self.config.out_stride
+
+    @property
+    def cell_size(self) -> tuple[float, float]:
+        """(dx, dy) metres of one output cell."""
+        return (
+            self.config.pillar_size[0] * self.config.out_stride,
+            self.config.pillar_size[1] * self.config.out_stride,
+        )
+
+    def forward(
+        self,
+        features: torch.Tensor,
+        coords: torch.Tensor,
+        num_points: torch.Tensor,
+        batch_size: int = 1,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """features (P, M, 9), coords (P, 3) int64 (batch, iy, ix), num_points (P,).
+
+        Returns heatmap logits (B, C, h, w) and regression (B, 8, h, w) on the output grid.
+        """
+        ny, nx = self.grid.shape
+        encoded = self.encoder(features, num_points)
+        flat = coords[:, 0] * (ny * nx) + coords[:, 1] * nx + coords[:, 2]
+        canvas = encoded.new_zeros(batch_size * ny * nx, encoded.shape[1])
+        canvas = canvas.index_put((flat,), encoded)
+        x = canvas.reshape(batch_size, ny, nx, -1).permute(0, 3, 1, 2)
+        out_h, out_w = self.output_shape
+        merged = None
+        for block, merge in zip(self.stages, self.merge, strict=True):
+            x = block(x)
+            lifted = merge(x)
+            if lifted.shape[-2:] != (out_h, out_w):
+                if lifted.shape[-2] < out_h:
+                    lifted = F.interpolate(lifted, size=(out_h, out_w), mode="nearest")
+                else:
+                    lifted = F.adaptive_avg_pool2d(lifted, (out_h, out_w))
+            merged = lifted if merged is None else merged + lifted
+        shared = self.neck(merged)
+        return self.heatmap_head(shared), self.regression_head(shared)
+
+    def decode(
+        self, heatmap: torch.Tensor, regression: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Head maps -> boxes (B, K, 7) LiDAR x y z l w h yaw, scores (B, K), classes (B, K),
+        probabilities (B, K, C). Differentiable in the gathered values."""
+        width = heatmap.shape[3]
+        scores, classes, pixel, probabilities = heatmap_peaks(
+            torch.sigmoid(heatmap), self.config.max_detections
+        )
+        values = gather_at(regression, pixel)
+        return self.boxes_from_regression(pixel, values, width), scores, classes, probabilities
+
+    def boxes_from_regression(
+        self, pixel: torch.Tensor, values: torch.Tensor, width: int
+    ) -> torch.Tensor:
+        """Flat output-cell indices (B, K) and regression values (B, K, 8) -> (B, K, 7) boxes."""
+        x_min, y_min = self.config.point_cloud_range[0], self.config.point_cloud_range[1]
+        cell_x, cell_y = self.cell_size
+        ys = torch.div(pixel, width, rounding_mode="floor")
+        xs = pixel - ys * width
+        centre_x = (xs.to(values.dtype) + values[..., 0]) * cell_x + x_min
+        centre_y = (ys.to(values.dtype) + values[..., 1]) * cell_y + y_min
+        dims = torch.exp(values[..., 3:6].clamp(max=4.0))
+        yaw = torch.atan2(values[..., 6], values[..., 7])
+        return torch.cat(
+            [centre_x[..., None], centre_y[..., None], values[..., 2:3], dims, yaw[..., None]], -1
+        )
+
+    def cell_centres(self) -> np.ndarray:
+        """(h, w, 2) x, y metres of the output cells' centres, LiDAR frame."""
+        out_h, out_w = self.output_shape
+        cell_x, cell_y = self.cell_size
+        x_min, y_min = self.config.point_cloud_range[0], self.config.point_cloud_range[1]
+        xs = (np.arange(out_w) + 0.5) * cell_x + x_min
+        ys = (np.arange(out_h) + 0.5) * cell_y + y_min
+        return np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
+
+    def build_targets(
+        self, boxes: np.ndarray, labels: np.ndarray, labelled_area: np.ndarray | None = None
+    ) -> dict[str, np.ndarray]:
+        """Ground truth for one frame. boxes: (N, 7) LiDAR boxes; labels: (N,) class ids;
+        labelled_area: (h, w) bool of output cells where objects are labelled (KITTI labels
+        only the camera's view); elsewhere the background is not learned. Returns heatmap
+        (C, h, w), the area mask (1, h, w), and per-object flat index and regression (N', 8)."""
+        out_h, out_w = self.output_shape
+        cell_x, cell_y = self.cell_size
+        x_min, y_min = self.config.point_cloud_range[0], self.config.point_cloud_range[1]
+        heatmap = np.zeros((self.num_classes, out_h, out_w), dtype=np.float32)
+        if labelled_area is None:
+            labelled_area = np.ones((out_h, out_w), dtype=bool)
+        index, regression = [], []
+        for box, label in zip(np.asarray(boxes, dtype=np.float64), labels, strict=True):
+            centre = np.array([(box[0] - x_min) / cell_x, (box[1] - y_min) / cell_y])
+            cell = np.floor(centre).astype(int)
+            if not (0 <= cell[0] < out_w and 0 <= cell[1] < out_h) or np.any(box[3:6] <= 0):
+                continue
+            radius = max(2, int(gaussian_radius(box[3] / cell_x, box[4] / cell_y, 0.1)))
+            draw_gaussian(heatmap[int(label)], cell[0], cell[1], radius)
+            index.append(cell[1] * out_w + cell[0])
+            regression.append(
+                [*(centre - cell), box[2], *np.log(box[3:6]), math.sin(box[6]), math.cos(box[6])]
+            )
+        return {
+            "heatmap": heatmap,
+            "labelled_area": labelled_area[None].astype(np.float32),
+            "index": np.asarray(index, dtype=np.int64),
+            "regression": np.asarray(regression, dtype=np.float32).reshape(-1, REGRESSION_CHANNELS),
+        }
+
+    def loss(
+        self,
+        outputs: tuple[torch.Tensor, torch.Tensor],
+        targets: list[dict[str, np.ndarray]],
+        box_regression: bool = True,
+    ) -> dict[str, torch.Tensor]:
+        """Focal heatmap loss and L1 regression at object centres (averaged over objects)."""
+        heatmap, regression = outputs
+        target_heatmap = torch.from_numpy(np.stack([t["heatmap"] for t in targets]))
+        area = torch.from_numpy(np.stack([t["labelled_area"] for t in targets]))
+        focal = heatmap_focal_loss(
+            heatmap, target_heatmap.to(heatmap.device), area.to(heatmap.device)
+        )
+        losses = {"heatmap": self.config.heatmap_weight * focal}
+        if box_regression:
+            terms = []
+            for b, target in enumerate(targets):
+                if len(target["index"]):
+                    index = torch.from_numpy(target["index"]).to(regression.device)
+                    predicted = regression[b].flatten(1)[:, index].t()
+                    terms.append(
+                        F.l1_loss(
+                            predicted, torch.from_numpy(target["regression"]), reduction="sum"
+                        )
+                    )
+            count = max(sum(len(t["index"]) for t in targets), 1)
+            total = sum(terms, regression.sum() * 0.0) / count
+            losses["regression"] = self.config.regression_weight * total
+        return losses
+
+
+class Detector3DExport(nn.Module):
+    """Pillars of one frame in, decoded detections out: the graph exported to ONNX."""
+
+    def __init__(self, detector: PointPillars3D) -> None:
+        super().__init__()
+        self.detector = detector
+
+    def forward(
+        self, features: torch.Tensor, coords: torch.Tensor, num_points: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """features (P, M, 9), coords (P, 2) (iy, ix), num_points (P,) -> decoded (batch of 1)."""
+        batch_coords = torch.cat([torch.zeros_like(coords[:, :1]), coords], dim=1)
+        return self.detector.decode(
+            *self.detector(features, batch_coords, num_points, batch_size=1)
+        )

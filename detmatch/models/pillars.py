@@ -1,0 +1,107 @@
+"""Point cloud -> pillars, in numpy: the one voxelisation used by training and by serving.
+
+It imports no torch, so the labeling service runs exactly this function before onnxruntime.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Per-point pillar features: x, y, z, intensity, offsets to the pillar's point mean (3) and to
+# the pillar's centre (2) -- PointPillars' nine.
+PILLAR_FEATURES = 9
+
+
+@dataclass(frozen=True)
+class PillarGrid:
+    """A bird's-eye-view grid over point_cloud_range (x_min, y_min, z_min, x_max, y_max, z_max)
+    in metres, LiDAR frame, with square-ish pillars of pillar_size (dx, dy) metres."""
+
+    point_cloud_range: tuple[float, ...]
+    pillar_size: tuple[float, float]
+    max_points_per_pillar: int
+    max_pillars: int
+
+    def __post_init__(self) -> None:
+        if len(self.point_cloud_range) != 6:
+            raise ValueError(f"point_cloud_range needs 6 values, got {self.point_cloud_range}")
+        x_min, y_min, z_min, x_max, y_max, z_max = self.point_cloud_range
+        if not (x_max > x_min and y_max > y_min and z_max > z_min):
+            raise ValueError(f"point_cloud_range is empty: {self.point_cloud_range}")
+        if min(self.pillar_size) <= 0:
+            raise ValueError(f"pillar_size must be positive, got {self.pillar_size}")
+        for name, (extent, step) in {
+            "x": (x_max - x_min, self.pillar_size[0]),
+            "y": (y_max - y_min, self.pillar_size[1]),
+        }.items():
+            cells = extent / step
+            if abs(cells - round(cells)) > 1e-6:
+                raise ValueError(
+                    f"the {name} range ({extent} m) is not a multiple of the pillar size {step}"
+                )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(ny, nx) cells."""
+        x_min, y_min, _, x_max, y_max, _ = self.point_cloud_range
+        return (
+            int(round((y_max - y_min) / self.pillar_size[1])),
+            int(round((x_max - x_min) / self.pillar_size[0])),
+        )
+
+
+def pillarize(points: np.ndarray, grid: PillarGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 4) LiDAR points -> pillars.
+
+    Returns features (P, M, 9) float32 (zero beyond each pillar's points), coords (P, 2) int64
+    (iy, ix) cells, and num_points (P,) int64 in [1, M]. Points outside the range are dropped;
+    a pillar keeps its first M points in input order; when more than max_pillars are occupied,
+    the fullest are kept. Pillars come out in row-major cell order. Deterministic.
+    """
+    points = np.asarray(points, dtype=np.float32)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise ValueError(f"points must be (N, 4), got {points.shape}")
+    x_min, y_min, z_min, x_max, y_max, z_max = grid.point_cloud_range
+    ny, nx = grid.shape
+    max_points = grid.max_points_per_pillar
+    inside = (
+        (points[:, 0] >= x_min)
+        & (points[:, 0] < x_max)
+        & (points[:, 1] >= y_min)
+        & (points[:, 1] < y_max)
+        & (points[:, 2] >= z_min)
+        & (points[:, 2] < z_max)
+    )
+    points = points[inside]
+    ix = np.clip(((points[:, 0] - x_min) / grid.pillar_size[0]).astype(np.int64), 0, nx - 1)
+    iy = np.clip(((points[:, 1] - y_min) / grid.pillar_size[1]).astype(np.int64), 0, ny - 1)
+    cell = iy * nx + ix
+    order = np.argsort(cell, kind="stable")
+    cell, points = cell[order], points[order]
+    occupied, starts, counts = np.unique(cell, return_index=True, return_counts=True)
+    if occupied.size > grid.max_pillars:
+        fullest = np.sort(np.argsort(-counts, kind="stable")[: grid.max_pillars])
+        occupied, starts, counts = occupied[fullest], starts[fullest], counts[fullest]
+    num_pillars = occupied.size
+    kept = np.minimum(counts, max_points)
+
+    # Position of each kept point: pillar p, slot s < kept[p].
+    pillar_of_slot = np.repeat(np.arange(num_pillars), kept)
+    slot = np.arange(pillar_of_slot.size) - np.repeat(np.cumsum(kept) - kept, kept)
+    source = starts[pillar_of_slot] + slot
+    kept_points = points[source]
+
+    features = np.zeros((num_pillars, max_points, PILLAR_FEATURES), dtype=np.float32)
+    features[pillar_of_slot, slot, :4] = kept_points
+    sums = np.zeros((num_pillars, 3), dtype=np.float64)
+    np.add.at(sums, pillar_of_slot, kept_points[:, :3])
+    means = (sums / np.maximum(kept, 1)[:, None]).astype(np.float32)
+    features[pillar_of_slot, slot, 4:7] = kept_points[:, :3] - means[pillar_of_slot]
+    coords = np.stack([occupied // nx, occupied % nx], axis=1).astype(np.int64)
+    centre_x = (coords[:, 1].astype(np.float32) + 0.5) * grid.pillar_size[0] + x_min
+    centre_y = (coords[:, 0].astype(np.float32) + 0.5) * grid.pillar_size[1] + y_min
+    features[pillar_of_slot, slot, 7] = kept_points[:, 0] - centre_x[pillar_of_slot]
+    features[pillar_of_slot, slot, 8] = kept_points[:, 1] - centre_y[pillar_of_slot]
+    return features, coords, kept.astype(np.int64)

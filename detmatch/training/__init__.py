@@ -1,0 +1,1 @@
+"""Training: checkpoints, distributed set-up, the train loop and inference helpers."""

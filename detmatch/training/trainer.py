@@ -1,0 +1,294 @@
+"""Supervised training of both detectors (the labeled-only stage of DetMatch).
+
+One step trains the 2D and the 3D detector on the same labeled frames, each with its own
+optimiser (DESIGN.md section 3). Rank 0 alone logs, evaluates and writes checkpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from detmatch.config import ExperimentConfig, config_to_dict
+from detmatch.data.dataset import Batch, FrameDataset, Sample, collate
+from detmatch.geometry import points_in_image
+from detmatch.models.detector2d import CenterNet2D
+from detmatch.models.detector3d import PointPillars3D, pillar_grid
+from detmatch.training.checkpoint import (
+    checkpoint_path,
+    list_checkpoints,
+    load_checkpoint,
+    restore_rng_state,
+    rng_state,
+    save_checkpoint,
+)
+from detmatch.training.distributed import (
+    DistributedContext,
+    StepSampler,
+    barrier,
+    broadcast_buffers,
+)
+from detmatch.training.evaluation import evaluate_detectors
+
+CHECKPOINT_FORMAT = 1
+
+
+def build_detectors(config: ExperimentConfig) -> tuple[CenterNet2D, PointPillars3D]:
+    num_classes = len(config.data.classes)
+    return CenterNet2D(config.detector2d, num_classes), PointPillars3D(
+        config.detector3d, num_classes
+    )
+
+
+def build_optimizers(
+    config: ExperimentConfig, model_2d: torch.nn.Module, model_3d: torch.nn.Module
+) -> tuple[torch.optim.Optimizer, torch.optim.Optimizer]:
+    """SGD (momentum 0.9, weight decay 1e-4) for 2D; AdamW (0.95, 0.99; 0.01) for 3D."""
+    train = config.train
+    sgd = torch.optim.SGD(
+        model_2d.parameters(),
+        lr=train.lr_2d,
+        momentum=train.momentum_2d,
+        weight_decay=train.weight_decay_2d,
+    )
+    adamw = torch.optim.AdamW(
+        model_3d.parameters(),
+        lr=train.lr_3d,
+        betas=train.betas_3d,
+        weight_decay=train.weight_decay_3d,
+    )
+    return sgd, adamw
+
+
+def warmup_factor(step: int, warmup_steps: int) -> float:
+    """Linear warm-up to 1 over warmup_steps, then constant."""
+    return min(1.0, (step + 1) / max(warmup_steps, 1))
+
+
+@dataclass
+class TrainState:
+    model_2d: CenterNet2D
+    model_3d: PointPillars3D
+    optimizer_2d: torch.optim.Optimizer
+    optimizer_3d: torch.optim.Optimizer
+    step: int = 0
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+    def to_checkpoint(self, config: ExperimentConfig) -> dict[str, Any]:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "config": config_to_dict(config),
+            "classes": list(config.data.classes),
+            "model_2d": self.model_2d.state_dict(),
+            "model_3d": self.model_3d.state_dict(),
+            "optimizer_2d": self.optimizer_2d.state_dict(),
+            "optimizer_3d": self.optimizer_3d.state_dict(),
+            "rng": rng_state(),
+            "metrics": self.metrics,
+        }
+
+    def load(self, checkpoint: dict[str, Any]) -> None:
+        if checkpoint.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"unsupported checkpoint format {checkpoint.get('format')!r}")
+        self.model_2d.load_state_dict(checkpoint["model_2d"])
+        self.model_3d.load_state_dict(checkpoint["model_3d"])
+        self.optimizer_2d.load_state_dict(checkpoint["optimizer_2d"])
+        self.optimizer_3d.load_state_dict(checkpoint["optimizer_3d"])
+        self.step = int(checkpoint["step"])
+        self.metrics = dict(checkpoint.get("metrics", {}))
+        restore_rng_state(checkpoint["rng"])
+
+
+def _clip_and_step(
+    optimizer: torch.optim.Optimizer, model: torch.nn.Module, clip: float, lr: float
+) -> float:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+    optimizer.step()
+    return float(norm)
+
+
+# Height (LiDAR z, metres) at which output cells are tested against the camera's view.
+VIEW_TEST_HEIGHT = -0.8
+
+
+def labelled_area(model_3d: PointPillars3D, sample: Sample) -> np.ndarray:
+    """(h, w) bool: output cells inside the camera's horizontal field of view, where KITTI-style
+    labels exist. Cells are tested in the un-augmented frame (the flip undone)."""
+    centres = model_3d.cell_centres()
+    xy = centres.reshape(-1, 2).copy()
+    if sample.flipped:
+        xy[:, 1] = -xy[:, 1]
+    points = np.column_stack([xy, np.full(len(xy), VIEW_TEST_HEIGHT)])
+    size = sample.image_transform.original_size
+    return points_in_image(points, sample.calib, size, check_rows=False).reshape(centres.shape[:2])
+
+
+def supervised_losses(
+    model_2d: CenterNet2D,
+    model_3d: PointPillars3D,
+    forward_2d: torch.nn.Module,
+    forward_3d: torch.nn.Module,
+    batch: Batch,
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """Ground-truth losses of both detectors on a batch. forward_* are the (possibly DDP-wrapped)
+    modules to call; model_* own the losses and targets."""
+    targets_2d = [
+        model_2d.build_targets(s.boxes_2d, s.classes_2d, s.image_transform.input_size)
+        for s in batch.samples
+    ]
+    targets_3d = [
+        model_3d.build_targets(s.boxes_3d, s.classes_3d, labelled_area(model_3d, s))
+        for s in batch.samples
+    ]
+    losses_2d = model_2d.loss(forward_2d(batch.images), targets_2d)
+    outputs_3d = forward_3d(
+        batch.pillar_features, batch.pillar_coords, batch.pillar_counts, batch_size=len(batch)
+    )
+    return losses_2d, model_3d.loss(outputs_3d, targets_3d)
+
+
+class SupervisedTrainer:
+    """Labeled-only training of both detectors with periodic evaluation and checkpoints."""
+
+    def __init__(
+        self, config: ExperimentConfig, run_dir: Path, context: DistributedContext
+    ) -> None:
+        self.config = config
+        self.run_dir = Path(run_dir)
+        self.context = context
+        torch.manual_seed(config.train.seed)
+        model_2d, model_3d = build_detectors(config)
+        optimizer_2d, optimizer_3d = build_optimizers(config, model_2d, model_3d)
+        self.state = TrainState(model_2d, model_3d, optimizer_2d, optimizer_3d)
+        self.forward_2d: torch.nn.Module = model_2d
+        self.forward_3d: torch.nn.Module = model_3d
+        if context.enabled:
+            self.forward_2d = DistributedDataParallel(model_2d)
+            self.forward_3d = DistributedDataParallel(model_3d)
+        grid = pillar_grid(config.detector3d)
+        data = config.data
+        self.train_set = FrameDataset(
+            data.root, data.train_split, data.classes, data.image_size, grid,
+            augment=True, flip_probability=config.train.flip_probability, seed=config.train.seed,
+        )  # fmt: skip
+        self.val_set = FrameDataset(data.root, data.val_split, data.classes, data.image_size, grid)
+
+    def resume(self) -> bool:
+        """Load the run's latest checkpoint if there is one; True if resumed."""
+        found = list_checkpoints(self.run_dir)
+        if not found:
+            return False
+        self.state.load(load_checkpoint(found[-1]))
+        return True
+
+    def train_step(self, batch: Batch) -> dict[str, float]:
+        state, train = self.state, self.config.train
+        state.model_2d.train()
+        state.model_3d.train()
+        losses_2d, losses_3d = supervised_losses(
+            state.model_2d, state.model_3d, self.forward_2d, self.forward_3d, batch
+        )
+        loss_2d, loss_3d = sum(losses_2d.values()), sum(losses_3d.values())
+        state.optimizer_2d.zero_grad(set_to_none=True)
+        state.optimizer_3d.zero_grad(set_to_none=True)
+        (loss_2d + loss_3d).backward()
+        factor = warmup_factor(state.step, train.warmup_steps)
+        grad_2d = _clip_and_step(
+            state.optimizer_2d, state.model_2d, train.grad_clip, train.lr_2d * factor
+        )
+        grad_3d = _clip_and_step(
+            state.optimizer_3d, state.model_3d, train.grad_clip, train.lr_3d * factor
+        )
+        state.step += 1
+        record = {f"loss_2d/{k}": v.item() for k, v in losses_2d.items()}
+        record.update({f"loss_3d/{k}": v.item() for k, v in losses_3d.items()})
+        record.update(loss_2d=loss_2d.item(), loss_3d=loss_3d.item())
+        record.update(grad_norm_2d=grad_2d, grad_norm_3d=grad_3d)
+        record.update(lr_2d=train.lr_2d * factor, lr_3d=train.lr_3d * factor)
+        return record
+
+    def loader(self) -> torch.utils.data.DataLoader:
+        train = self.config.train
+        sampler = StepSampler(
+            size=len(self.train_set),
+            batch_size=train.batch_size,
+            seed=train.seed,
+            start_step=self.state.step,
+            rank=self.context.rank,
+            world_size=self.context.world_size,
+        )
+        return torch.utils.data.DataLoader(
+            self.train_set,
+            batch_size=train.batch_size,
+            sampler=sampler,
+            collate_fn=collate,
+            num_workers=self.config.data.num_workers,
+            persistent_workers=self.config.data.num_workers > 0,
+        )
+
+    def save(self) -> Path:
+        path = checkpoint_path(self.run_dir, self.state.step)
+        save_checkpoint(path, self.state.to_checkpoint(self.config))
+        return path
+
+    def evaluate(self) -> dict[str, Any]:
+        return evaluate_detectors(
+            self.state.model_2d, self.state.model_3d, self.val_set, self.config.data.classes,
+            batch_size=self.config.train.batch_size,
+        )  # fmt: skip
+
+    def run(self, stop_after: int | None = None) -> TrainState:
+        """Train up to config.train.steps (or stop_after more steps, for tests that simulate a
+        killed run), evaluating and checkpointing on the configured periods."""
+        train, main = self.config.train, self.context.is_main
+        last = train.steps if stop_after is None else min(train.steps, self.state.step + stop_after)
+        if main:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            (self.run_dir / "config.json").write_text(
+                json.dumps(config_to_dict(self.config), indent=2)
+            )
+        log = (self.run_dir / "metrics.jsonl").open("a") if main else None
+        progress = tqdm(
+            total=last, initial=self.state.step, desc="train", disable=not main, dynamic_ncols=True
+        )
+        batches = iter(self.loader())
+        started = time.monotonic()
+        try:
+            while self.state.step < last:
+                record = self.train_step(next(batches))
+                if self.state.step == last:
+                    broadcast_buffers(self.state.model_2d, self.context)
+                    broadcast_buffers(self.state.model_3d, self.context)
+                step = self.state.step
+                progress.update(1)
+                if main and (step % train.log_every == 0 or step == last):
+                    record.update(step=step, elapsed_s=round(time.monotonic() - started, 3))
+                    log.write(json.dumps(record) + "\n")
+                    log.flush()
+                    progress.set_postfix(
+                        loss_2d=f"{record['loss_2d']:.3f}", loss_3d=f"{record['loss_3d']:.3f}"
+                    )
+                if step % train.eval_every == 0 or step == train.steps:
+                    if main:
+                        self.state.metrics = self.evaluate()
+                        log.write(json.dumps({"step": step, "eval": self.state.metrics}) + "\n")
+                        log.flush()
+                    barrier(self.context)
+                if main and (step % train.checkpoint_every == 0 or step == last):
+                    self.save()
+        finally:
+            progress.close()
+            if log is not None:
+                log.close()
+        return self.state

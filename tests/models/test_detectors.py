@@ -1,0 +1,152 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from detmatch.config import load_config
+from detmatch.models.common import heatmap_peaks
+from detmatch.models.detector2d import CenterNet2D, Detector2DExport
+from detmatch.models.detector3d import Detector3DExport, PointPillars3D
+from detmatch.models.pillars import pillarize
+from tests.conftest import REPO
+
+TINY = load_config(REPO / "configs" / "tiny.toml")
+NUM_CLASSES = len(TINY.data.classes)
+
+
+def logit(p: np.ndarray) -> np.ndarray:
+    p = np.clip(p, 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p))
+
+
+@pytest.fixture
+def detector_2d():
+    torch.manual_seed(0)
+    return CenterNet2D(TINY.detector2d, NUM_CLASSES)
+
+
+@pytest.fixture
+def detector_3d():
+    torch.manual_seed(0)
+    return PointPillars3D(TINY.detector3d, NUM_CLASSES)
+
+
+def test_2d_forward_backward_and_shapes(detector_2d):
+    width, height = TINY.data.image_size
+    images = torch.rand(2, 3, height, width) * 255
+    heatmap, size, offset = detector_2d(images)
+    assert heatmap.shape == (2, NUM_CLASSES, height // 4, width // 4)
+    assert size.shape == offset.shape == (2, 2, height // 4, width // 4)
+    targets = [
+        detector_2d.build_targets(
+            np.array([[40.0, 20.0, 90.0, 60.0]]), np.array([0]), (width, height)
+        ),
+        detector_2d.build_targets(np.zeros((0, 4)), np.zeros(0, dtype=np.int64), (width, height)),
+    ]
+    losses = detector_2d.loss((heatmap, size, offset), targets)
+    sum(losses.values()).backward()
+    assert all(torch.isfinite(v) for v in losses.values())
+    assert all(p.grad is not None for p in detector_2d.parameters() if p.requires_grad)
+    with torch.no_grad():
+        boxes, scores, classes, probabilities = Detector2DExport(detector_2d.eval())(images)
+    k = TINY.detector2d.max_detections
+    assert boxes.shape == (2, k, 4) and scores.shape == classes.shape == (2, k)
+    assert probabilities.shape == (2, k, NUM_CLASSES)
+    # The score of a detection is its class's entry in the probability vector.
+    np.testing.assert_allclose(probabilities.gather(2, classes[..., None])[..., 0], scores)
+
+
+def test_2d_decoding_recovers_a_box_from_hand_set_heads(detector_2d):
+    width, height = TINY.data.image_size
+    box = np.array([[101.0, 30.5, 161.0, 70.5]])
+    target = detector_2d.build_targets(box, np.array([2]), (width, height))
+    out_w = width // 4
+    heatmap = torch.from_numpy(logit(target["heatmap"]))[None]
+    size = torch.zeros(1, 2, height // 4, out_w)
+    offset = torch.zeros(1, 2, height // 4, out_w)
+    cell_y, cell_x = divmod(int(target["index"][0]), out_w)
+    size[0, :, cell_y, cell_x] = torch.from_numpy(target["size"][0])
+    offset[0, :, cell_y, cell_x] = torch.from_numpy(target["offset"][0])
+    boxes, scores, classes, probabilities = detector_2d.decode(heatmap, size, offset)
+    assert classes[0, 0] == 2 and scores[0, 0] == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(boxes[0, 0].numpy(), box[0], atol=1e-4)
+    assert scores[0, 1] < 0.5  # one object, one peak
+
+
+def test_3d_forward_backward_and_shapes(detector_3d):
+    rng = np.random.default_rng(0)
+    points = np.concatenate(
+        [rng.uniform([0, -25, -2], [50, 25, 0.5], size=(4000, 3)), rng.uniform(0, 1, (4000, 1))],
+        axis=1,
+    ).astype(np.float32)
+    features, coords, counts = pillarize(points, detector_3d.grid)
+    batch_coords = np.concatenate([np.zeros((len(coords), 1), dtype=np.int64), coords], axis=1)
+    heatmap, regression = detector_3d(
+        torch.from_numpy(features), torch.from_numpy(batch_coords), torch.from_numpy(counts)
+    )
+    out_h, out_w = detector_3d.output_shape
+    assert heatmap.shape == (1, NUM_CLASSES, out_h, out_w)
+    assert regression.shape == (1, 8, out_h, out_w)
+    target = detector_3d.build_targets(
+        np.array([[20.0, 3.0, -0.9, 3.9, 1.6, 1.5, 0.4]]), np.array([0])
+    )
+    losses = detector_3d.loss((heatmap, regression), [target])
+    sum(losses.values()).backward()
+    assert all(torch.isfinite(v) for v in losses.values())
+    assert all(p.grad is not None for p in detector_3d.parameters())
+    with torch.no_grad():
+        boxes, scores, classes, probabilities = Detector3DExport(detector_3d.eval())(
+            torch.from_numpy(features), torch.from_numpy(coords), torch.from_numpy(counts)
+        )
+    k = TINY.detector3d.max_detections
+    assert boxes.shape == (1, k, 7) and probabilities.shape == (1, k, NUM_CLASSES)
+
+
+def test_3d_decoding_recovers_a_box_from_hand_set_heads(detector_3d):
+    box = np.array([[23.7, -4.2, -0.85, 3.9, 1.6, 1.52, 2.5]])
+    target = detector_3d.build_targets(box, np.array([1]))
+    out_h, out_w = detector_3d.output_shape
+    heatmap = torch.from_numpy(logit(target["heatmap"]))[None]
+    regression = torch.zeros(1, 8, out_h, out_w)
+    cell_y, cell_x = divmod(int(target["index"][0]), out_w)
+    regression[0, :, cell_y, cell_x] = torch.from_numpy(target["regression"][0])
+    boxes, scores, classes, _ = detector_3d.decode(heatmap, regression)
+    assert classes[0, 0] == 1 and scores[0, 0] == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(boxes[0, 0, :6].numpy(), box[0, :6], atol=1e-4)
+    assert math.remainder(float(boxes[0, 0, 6]) - box[0, 6], 2 * math.pi) == pytest.approx(
+        0.0, abs=1e-5
+    )
+
+
+def test_heatmap_peaks_suppress_neighbours_and_keep_probability_vectors():
+    heat = torch.zeros(1, 2, 5, 5)
+    heat[0, 0, 2, 2], heat[0, 0, 2, 3], heat[0, 1, 2, 2] = 0.9, 0.8, 0.3
+    scores, classes, pixel, probabilities = heatmap_peaks(heat, 2)
+    assert scores[0].tolist() == pytest.approx([0.9, 0.3])  # 0.8 is not a local maximum
+    assert classes[0].tolist() == [0, 1] and pixel[0].tolist() == [12, 12]
+    assert probabilities[0, 0].tolist() == pytest.approx([0.9, 0.3])
+
+
+def test_pillarize_keeps_points_and_features():
+    grid = PointPillars3D(TINY.detector3d, NUM_CLASSES).grid
+    points = np.array(
+        [
+            [1.3, 0.1, -1.0, 0.5],
+            [1.5, 0.3, -0.5, 0.7],
+            [10.0, -5.0, 0.0, 0.1],
+            [-3.0, 0.0, 0.0, 0.0],
+        ],
+        dtype=np.float32,
+    )
+    features, coords, counts = pillarize(points, grid)
+    assert sorted(counts.tolist()) == [1, 2]
+    assert counts.sum() == 3  # the point behind the sensor is outside the range
+    first = int(np.argmax(counts))
+    pillar = features[first, :2]
+    np.testing.assert_allclose(pillar[:, :4], points[:2], atol=1e-6)
+    np.testing.assert_allclose(pillar[:, 4:7].sum(axis=0), 0.0, atol=1e-6)  # offsets to the mean
+    x_min, y_min = grid.point_cloud_range[:2]
+    centre = (coords[first, ::-1] + 0.5) * np.array(grid.pillar_size) + [x_min, y_min]
+    np.testing.assert_allclose(pillar[:, 7:9], points[:2, :2] - centre, atol=1e-5)
+    assert np.all(features[first, 2:] == 0)
