@@ -1,0 +1,128 @@
+"""DetMatch pseudo-labels from teacher detections (DESIGN.md section 3, steps 1-5), numpy only.
+
+Shared by semi-supervised training and the labeling service, so both produce the same labels
+from the same detections. Everything is in the un-augmented frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from detmatch.geometry import boxes_in_image_mask, project_boxes_to_image
+from detmatch.matching import TAU_HUNG, hungarian_match, matching_cost
+from detmatch.structures import Calibration, Detections
+
+# Single-modality confidence thresholds (DESIGN.md section 3): also the 3D fallback outside
+# the camera's view.
+TAU_3D = 0.3
+TAU_2D = 0.7
+
+
+class Provenance(IntEnum):
+    """Where a label came from."""
+
+    MATCHED = 0  # a 3D and a 2D teacher detection agreed (Hungarian cost <= tau_hung)
+    LIDAR_ONLY_OUTSIDE_VIEW = 1  # a confident 3D detection the camera cannot see
+
+
+@dataclass(frozen=True)
+class MatchedLabels:
+    """Labels of one frame, N rows.
+
+    boxes_3d: (N, 7) LiDAR boxes; boxes_2d: (N, 4) xyxy original pixels (matched rows: the 2D
+    teacher's box; LiDAR-only rows: NaN); class_3d / class_2d: (N,) each teacher's argmax class
+    (-1 where absent); score_3d / score_2d: (N,) max class probabilities (NaN where absent);
+    cost: (N,) matching cost (NaN for LiDAR-only rows); provenance: (N,) Provenance values;
+    index_3d / index_2d: (N,) rows of the input detections (-1 where absent).
+    """
+
+    boxes_3d: np.ndarray
+    boxes_2d: np.ndarray
+    class_3d: np.ndarray
+    class_2d: np.ndarray
+    score_3d: np.ndarray
+    score_2d: np.ndarray
+    cost: np.ndarray
+    provenance: np.ndarray
+    index_3d: np.ndarray
+    index_2d: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.provenance)
+
+    @property
+    def matched(self) -> np.ndarray:
+        return self.provenance == Provenance.MATCHED
+
+
+def camera_view_mask(
+    boxes_3d: np.ndarray, calib: Calibration, image_size: tuple[int, int]
+) -> np.ndarray:
+    """(N, 7) LiDAR boxes -> (N,) bool: at least one corner in front of the camera and inside
+    the image. Boxes outside fall back to confidence thresholding."""
+    return boxes_in_image_mask(boxes_3d, calib, image_size, min_corners=1)
+
+
+def match_detections(
+    detections_3d: Detections,
+    detections_2d: Detections,
+    calib: Calibration,
+    image_size: tuple[int, int],
+    tau_hung: float = TAU_HUNG,
+    tau_3d_outside_view: float | None = TAU_3D,
+) -> MatchedLabels:
+    """Hungarian-match a frame's 3D and 2D teacher detections.
+
+    3D boxes in the camera's view are projected (DESIGN.md step 1) and matched with the 2D
+    boxes; assigned pairs with cost <= tau_hung become labels. 3D boxes outside the view whose
+    score exceeds tau_3d_outside_view are kept as LiDAR-only labels (None disables that
+    fallback). image_size is (W, H) of the original image.
+    """
+    in_view = camera_view_mask(detections_3d.boxes, calib, image_size)
+    view_rows = np.flatnonzero(in_view)
+    projected = project_boxes_to_image(detections_3d.boxes[view_rows], calib, image_size)
+    cost = matching_cost(
+        projected,
+        detections_3d.probabilities[view_rows],
+        detections_2d.boxes,
+        detections_2d.probabilities,
+        image_size,
+    )
+    rows, cols = hungarian_match(cost, tau_hung)
+    index_3d = view_rows[rows]
+    index_2d = cols
+    pair_cost = cost[rows, cols]
+
+    outside = np.zeros(0, dtype=np.int64)
+    if tau_3d_outside_view is not None:
+        outside = np.flatnonzero(~in_view & (detections_3d.scores > tau_3d_outside_view))
+    n_matched, n_outside = len(index_3d), len(outside)
+    all_3d = np.concatenate([index_3d, outside]).astype(np.int64)
+    absent = np.full(n_outside, -1, dtype=np.int64)
+    return MatchedLabels(
+        boxes_3d=detections_3d.boxes[all_3d].reshape(-1, 7),
+        boxes_2d=np.concatenate(
+            [detections_2d.boxes[index_2d].reshape(-1, 4), np.full((n_outside, 4), np.nan)]
+        ),
+        class_3d=detections_3d.classes[all_3d].astype(np.int64),
+        class_2d=np.concatenate([detections_2d.classes[index_2d].astype(np.int64), absent]),
+        score_3d=detections_3d.scores[all_3d].astype(np.float64),
+        score_2d=np.concatenate([detections_2d.scores[index_2d], np.full(n_outside, np.nan)]),
+        cost=np.concatenate([pair_cost, np.full(n_outside, np.nan)]),
+        provenance=np.concatenate(
+            [
+                np.full(n_matched, Provenance.MATCHED, dtype=np.int64),
+                np.full(n_outside, Provenance.LIDAR_ONLY_OUTSIDE_VIEW, dtype=np.int64),
+            ]
+        ),
+        index_3d=all_3d,
+        index_2d=np.concatenate([index_2d.astype(np.int64), absent]),
+    )
+
+
+def confident_detections(detections: Detections, threshold: float) -> Detections:
+    """Single-modality pseudo-labels: detections whose max class probability exceeds threshold."""
+    return detections[detections.scores > threshold]

@@ -1,0 +1,56 @@
+import numpy as np
+import pytest
+
+from detmatch.data.kitti import read_calib
+from detmatch.geometry import project_boxes_to_image
+from detmatch.pseudo_labels import Provenance, confident_detections, match_detections
+from detmatch.structures import Detections
+from tests.conftest import KITTI_SAMPLE
+
+IMAGE = (1242, 375)
+
+
+@pytest.fixture(scope="module")
+def calib():
+    return read_calib(KITTI_SAMPLE / "training" / "calib" / "000001.txt")
+
+
+def detections(boxes, probabilities):
+    boxes = np.asarray(boxes, dtype=float).reshape(len(probabilities), -1)
+    probabilities = np.asarray(probabilities, dtype=float)
+    return Detections(boxes, probabilities.max(1), probabilities.argmax(1), probabilities)
+
+
+def test_only_objects_both_sensors_agree_on_become_labels(calib):
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    pole = [12.0, -4.0, -0.8, 0.5, 0.5, 1.8, 0.0]  # the LiDAR thinks it is a pedestrian
+    far_behind = [-20.0, 0.0, -0.9, 3.9, 1.6, 1.5, 0.0]  # outside the camera's view
+    det_3d = detections(
+        [car, pole, far_behind], [[0.8, 0.1, 0.1], [0.1, 0.6, 0.1], [0.5, 0.1, 0.1]]
+    )
+    car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)[0] + [2, -1, -3, 2]
+    det_2d = detections([car_2d], [[0.85, 0.05, 0.1]])
+
+    labels = match_detections(det_3d, det_2d, calib, IMAGE)
+    assert labels.provenance.tolist() == [Provenance.MATCHED, Provenance.LIDAR_ONLY_OUTSIDE_VIEW]
+    assert labels.index_3d.tolist() == [0, 2] and labels.index_2d.tolist() == [0, -1]
+    np.testing.assert_array_equal(labels.boxes_2d[0], car_2d)
+    assert labels.cost[0] < -1.5 and np.isnan(labels.cost[1])
+    assert labels.class_3d.tolist() == [0, 0] and labels.class_2d.tolist() == [0, -1]
+
+    no_fallback = match_detections(det_3d, det_2d, calib, IMAGE, tau_3d_outside_view=None)
+    assert no_fallback.provenance.tolist() == [Provenance.MATCHED]
+    strict = match_detections(det_3d, det_2d, calib, IMAGE, tau_hung=-10.0)
+    assert strict.matched.sum() == 0
+
+
+def test_no_detections(calib):
+    empty = Detections(np.zeros((0, 7)), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
+    empty_2d = Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
+    labels = match_detections(empty, empty_2d, calib, IMAGE)
+    assert len(labels) == 0 and labels.boxes_3d.shape == (0, 7) and labels.boxes_2d.shape == (0, 4)
+
+
+def test_confidence_thresholding():
+    det = detections(np.zeros((3, 4)), [[0.9, 0.0, 0.0], [0.2, 0.5, 0.0], [0.1, 0.0, 0.75]])
+    assert confident_detections(det, 0.7).classes.tolist() == [0, 2]
