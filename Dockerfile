@@ -5,5 +5,5 @@ WORKDIR /opt/detmatch
 RUN pip install --no-cache-dir torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
 COPY pyproject.toml README.md ./
 COPY detmatch ./detmatch
-RUN pip install --no-cache-dir '.[serve]'
+RUN pip install --no-cache-dir '.[train,serve]'
 ENTRYPOINT ["detmatch"]
