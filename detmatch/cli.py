@@ -67,6 +67,7 @@ def _eval(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     from detmatch.config import load_config
     from detmatch.training.distributed import init_distributed, shutdown_distributed
+    from detmatch.training.semi_supervised import SemiSupervisedTrainer
     from detmatch.training.trainer import SupervisedTrainer
 
     config = load_config(args.config)
@@ -74,9 +75,21 @@ def _train(args: argparse.Namespace) -> int:
         config = config.replace("data", root=args.data)
     if args.steps is not None:
         config = config.replace("train", steps=args.steps)
+    if args.method:
+        config = config.replace("ssl", method=args.method)
+    if args.pretrained:
+        config = config.replace("ssl", pretrained=args.pretrained)
+    if config.ssl.method != "labeled-only" and not config.ssl.pretrained and not args.resume:
+        raise ValueError(
+            f"--method {config.ssl.method} starts from pre-trained weights: pass --pretrained "
+            "CKPT (a labeled-only run) or set [ssl] pretrained"
+        )
     context = init_distributed()
     try:
-        trainer = SupervisedTrainer(config, Path(args.out), context)
+        trainer_type = SupervisedTrainer
+        if config.ssl.method != "labeled-only":
+            trainer_type = SemiSupervisedTrainer
+        trainer = trainer_type(config, Path(args.out), context)
         if args.resume and trainer.resume() and context.is_main:
             print(f"resumed {args.out} at step {trainer.state.step}")
         state = trainer.run()
@@ -141,6 +154,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--resume", action="store_true", help="continue from the run's latest checkpoint"
     )
     train.add_argument("--steps", type=int, help="override [train] steps")
+    train.add_argument(
+        "--method",
+        choices=("labeled-only", "confidence", "detmatch"),
+        help="override [ssl] method: labeled-only, confidence thresholding or DetMatch",
+    )
+    train.add_argument("--pretrained", help="override [ssl] pretrained: the labeled-only run")
     train.set_defaults(handler=_train)
 
     predict = commands.add_parser("predict", help="write KITTI result files of both detectors")

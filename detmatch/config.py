@@ -1,6 +1,7 @@
 """Experiment configuration: frozen dataclasses loaded from TOML; unknown keys are errors.
 
-A config file has one table per section below ([data], [detector2d], [detector3d], [train]);
+A config file has one table per section below ([data], [detector2d], [detector3d], [train],
+[ssl]);
 every key is optional and defaults to the values here. Loss weights and learning rates are
 named fields, never string lookups.
 """
@@ -93,12 +94,53 @@ class TrainConfig:
     flip_probability: float = 0.5
 
 
+METHODS = ("labeled-only", "confidence", "detmatch")
+
+
+@dataclass(frozen=True)
+class SemiSupervisedConfig:
+    """Teacher-student training (DESIGN.md section 3). method: labeled-only, confidence
+    (single-modality thresholding) or detmatch. The labeled frames are [data] train_split."""
+
+    method: str = "labeled-only"
+    unlabeled_split: str = "train_unlabeled"
+    # Checkpoint (or run directory) of the labeled-only pre-training both students start from.
+    pretrained: str = ""
+    tau_3d: float = 0.3
+    tau_2d: float = 0.7
+    tau_hung: float = -1.5
+    # lambda: weight of both pseudo-label losses.
+    pseudo_label_weight: float = 1.0
+    # DetMatch weights the 2D pseudo-label (classification) loss x4 relative to the 3D one.
+    detmatch_2d_pseudo_weight: float = 4.0
+    # 3D boxes outside the camera's view fall back to confidence thresholding (tau_3d).
+    fov_fallback: bool = True
+    # Ablation switches of the 2D-teacher -> 3D-student consistency loss.
+    consistency_class: bool = True
+    consistency_box: bool = True
+    consistency_class_weight: float = 2.0
+    consistency_l1_weight: float = 20.0
+    consistency_giou_weight: float = 2.0
+    ema_offset: int = 100
+    ema_max_decay: float = 0.999
+    student_rotation: float = 0.7853981633974483
+    student_scale: tuple[float, float] = (0.95, 1.05)
+    photometric: bool = True
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(
+                f"[ssl] method must be one of {', '.join(METHODS)}, got {self.method!r}"
+            )
+
+
 @dataclass(frozen=True)
 class ExperimentConfig:
     data: DataConfig = field(default_factory=DataConfig)
     detector2d: Detector2DConfig = field(default_factory=Detector2DConfig)
     detector3d: Detector3DConfig = field(default_factory=Detector3DConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    ssl: SemiSupervisedConfig = field(default_factory=SemiSupervisedConfig)
 
     def replace(self, section: str, **changes: Any) -> ExperimentConfig:
         """A copy with some fields of one section changed (validated like a file)."""
@@ -179,5 +221,5 @@ def config_to_dict(config: ExperimentConfig) -> dict[str, Any]:
 
     return {
         section: {k: plain(v) for k, v in dataclasses.asdict(getattr(config, section)).items()}
-        for section in ("data", "detector2d", "detector3d", "train")
+        for section in ("data", "detector2d", "detector3d", "train", "ssl")
     }

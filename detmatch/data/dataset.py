@@ -85,7 +85,8 @@ class Sample:
     """One frame ready for both detectors (see ImageTransform / flip_boxes_3d for frames).
 
     image: (3, h, w) network input; boxes_2d: (N, 4) input pixels; boxes_3d: (M, 7) LiDAR frame
-    after the flip; pillars: (P, M, 9) features, (P, 2) coords, (P,) counts.
+    after the flip; pillars: (P, M, 9) features, (P, 2) coords, (P,) counts; points: (N, 4)
+    LiDAR points after the flip.
     """
 
     frame_id: str
@@ -99,6 +100,7 @@ class Sample:
     pillar_features: np.ndarray
     pillar_coords: np.ndarray
     pillar_counts: np.ndarray
+    points: np.ndarray
 
     @property
     def flipped(self) -> bool:
@@ -154,24 +156,38 @@ def make_sample(
         pillar_features=features,
         pillar_coords=coords,
         pillar_counts=counts,
+        points=points,
+    )
+
+
+def collate_pillars(
+    pillars: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-frame (features, coords (P, 2), counts) -> batched tensors, coords with the batch
+    index prepended."""
+    coords = [
+        np.concatenate([np.full((len(c), 1), b, dtype=np.int64), c], axis=1)
+        for b, (_, c, _) in enumerate(pillars)
+    ]
+    return (
+        torch.from_numpy(np.concatenate([f for f, _, _ in pillars])),
+        torch.from_numpy(np.concatenate(coords)),
+        torch.from_numpy(np.concatenate([n for _, _, n in pillars])),
     )
 
 
 def collate(samples: list[Sample]) -> Batch:
     """Stack images; concatenate pillars with their batch index as the first coordinate."""
-    coords = [
-        np.concatenate(
-            [np.full((len(s.pillar_coords), 1), b, dtype=np.int64), s.pillar_coords], axis=1
-        )
-        for b, s in enumerate(samples)
-    ]
+    features, coords, counts = collate_pillars(
+        [(s.pillar_features, s.pillar_coords, s.pillar_counts) for s in samples]
+    )
     return Batch(
         frame_ids=[s.frame_id for s in samples],
         samples=samples,
         images=torch.stack([s.image for s in samples]),
-        pillar_features=torch.from_numpy(np.concatenate([s.pillar_features for s in samples])),
-        pillar_coords=torch.from_numpy(np.concatenate(coords)),
-        pillar_counts=torch.from_numpy(np.concatenate([s.pillar_counts for s in samples])),
+        pillar_features=features,
+        pillar_coords=coords,
+        pillar_counts=counts,
     )
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -75,32 +76,59 @@ def warmup_factor(step: int, warmup_steps: int) -> float:
 
 @dataclass
 class TrainState:
+    """Everything a run needs to continue. model_* are the trained (student) models; teacher_*
+    exist in teacher-student runs and are then the run's output."""
+
     model_2d: CenterNet2D
     model_3d: PointPillars3D
     optimizer_2d: torch.optim.Optimizer
     optimizer_3d: torch.optim.Optimizer
     step: int = 0
     metrics: dict[str, Any] = field(default_factory=dict)
+    teacher_2d: CenterNet2D | None = None
+    teacher_3d: PointPillars3D | None = None
+
+    @property
+    def output_models(self) -> tuple[CenterNet2D, PointPillars3D]:
+        """The models a run delivers: the teachers if there are any, else the trained models."""
+        if self.teacher_2d is not None and self.teacher_3d is not None:
+            return self.teacher_2d, self.teacher_3d
+        return self.model_2d, self.model_3d
 
     def to_checkpoint(self, config: ExperimentConfig) -> dict[str, Any]:
-        return {
+        """model_2d / model_3d always hold the output models, so prediction and export read any
+        checkpoint the same way; students are stored beside teachers."""
+        output_2d, output_3d = self.output_models
+        checkpoint = {
             "format": CHECKPOINT_FORMAT,
             "step": self.step,
             "config": config_to_dict(config),
             "classes": list(config.data.classes),
-            "model_2d": self.model_2d.state_dict(),
-            "model_3d": self.model_3d.state_dict(),
+            "model_2d": output_2d.state_dict(),
+            "model_3d": output_3d.state_dict(),
             "optimizer_2d": self.optimizer_2d.state_dict(),
             "optimizer_3d": self.optimizer_3d.state_dict(),
             "rng": rng_state(),
             "metrics": self.metrics,
         }
+        if self.teacher_2d is not None:
+            checkpoint["student_2d"] = self.model_2d.state_dict()
+            checkpoint["student_3d"] = self.model_3d.state_dict()
+        return checkpoint
 
     def load(self, checkpoint: dict[str, Any]) -> None:
         if checkpoint.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"unsupported checkpoint format {checkpoint.get('format')!r}")
-        self.model_2d.load_state_dict(checkpoint["model_2d"])
-        self.model_3d.load_state_dict(checkpoint["model_3d"])
+        if self.teacher_2d is not None:
+            if "student_2d" not in checkpoint:
+                raise ValueError("a teacher-student run cannot resume from a supervised checkpoint")
+            self.teacher_2d.load_state_dict(checkpoint["model_2d"])
+            self.teacher_3d.load_state_dict(checkpoint["model_3d"])
+            self.model_2d.load_state_dict(checkpoint["student_2d"])
+            self.model_3d.load_state_dict(checkpoint["student_3d"])
+        else:
+            self.model_2d.load_state_dict(checkpoint["model_2d"])
+            self.model_3d.load_state_dict(checkpoint["model_3d"])
         self.optimizer_2d.load_state_dict(checkpoint["optimizer_2d"])
         self.optimizer_3d.load_state_dict(checkpoint["optimizer_3d"])
         self.step = int(checkpoint["step"])
@@ -108,7 +136,7 @@ class TrainState:
         restore_rng_state(checkpoint["rng"])
 
 
-def _clip_and_step(
+def clip_and_step(
     optimizer: torch.optim.Optimizer, model: torch.nn.Module, clip: float, lr: float
 ) -> float:
     for group in optimizer.param_groups:
@@ -204,10 +232,10 @@ class SupervisedTrainer:
         state.optimizer_3d.zero_grad(set_to_none=True)
         (loss_2d + loss_3d).backward()
         factor = warmup_factor(state.step, train.warmup_steps)
-        grad_2d = _clip_and_step(
+        grad_2d = clip_and_step(
             state.optimizer_2d, state.model_2d, train.grad_clip, train.lr_2d * factor
         )
-        grad_3d = _clip_and_step(
+        grad_3d = clip_and_step(
             state.optimizer_3d, state.model_3d, train.grad_clip, train.lr_3d * factor
         )
         state.step += 1
@@ -218,24 +246,31 @@ class SupervisedTrainer:
         record.update(lr_2d=train.lr_2d * factor, lr_3d=train.lr_3d * factor)
         return record
 
-    def loader(self) -> torch.utils.data.DataLoader:
+    def loader(
+        self, dataset: torch.utils.data.Dataset, collate_fn, seed: int
+    ) -> torch.utils.data.DataLoader:
+        """Endless batches from the current step on (StepSampler), this rank's share."""
         train = self.config.train
         sampler = StepSampler(
-            size=len(self.train_set),
+            size=len(dataset),
             batch_size=train.batch_size,
-            seed=train.seed,
+            seed=seed,
             start_step=self.state.step,
             rank=self.context.rank,
             world_size=self.context.world_size,
         )
         return torch.utils.data.DataLoader(
-            self.train_set,
+            dataset,
             batch_size=train.batch_size,
             sampler=sampler,
-            collate_fn=collate,
+            collate_fn=collate_fn,
             num_workers=self.config.data.num_workers,
             persistent_workers=self.config.data.num_workers > 0,
         )
+
+    def batches(self) -> Iterator[Any]:
+        """What train_step consumes, one item a step."""
+        return iter(self.loader(self.train_set, collate, self.config.train.seed))
 
     def save(self) -> Path:
         path = checkpoint_path(self.run_dir, self.state.step)
@@ -243,8 +278,10 @@ class SupervisedTrainer:
         return path
 
     def evaluate(self) -> dict[str, Any]:
+        """Score the run's output models on the val split."""
+        model_2d, model_3d = self.state.output_models
         return evaluate_detectors(
-            self.state.model_2d, self.state.model_3d, self.val_set, self.config.data.classes,
+            model_2d, model_3d, self.val_set, self.config.data.classes,
             batch_size=self.config.train.batch_size,
         )  # fmt: skip
 
@@ -262,7 +299,7 @@ class SupervisedTrainer:
         progress = tqdm(
             total=last, initial=self.state.step, desc="train", disable=not main, dynamic_ncols=True
         )
-        batches = iter(self.loader())
+        batches = self.batches()
         started = time.monotonic()
         try:
             while self.state.step < last:

@@ -1,0 +1,169 @@
+"""The 2D-teacher -> 3D-student consistency loss of DetMatch (DESIGN.md section 3).
+
+The 3D student's predictions on an unlabeled frame are decoded differentiably, moved back to
+the un-augmented frame, projected into the image, matched to the 2D teacher's matched
+pseudo-labels with the same Hungarian cost, and pulled towards them:
+2 * focal(class logits, teacher class) + 20 * L1(normalised xyxy) + 2 * (1 - GIoU).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from detmatch.data.augment import CloudTransform
+from detmatch.geometry import PROJECTION_MIN_DEPTH
+from detmatch.matching import hungarian_match, matching_cost
+from detmatch.models.common import gather_at, heatmap_peaks, sigmoid_focal_loss
+from detmatch.models.detector3d import PointPillars3D
+from detmatch.structures import Calibration
+
+_UNIT = 0.5 * torch.tensor(
+    [[1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, -1],
+     [1, -1, 1], [1, 1, 1], [-1, 1, 1], [-1, -1, 1]],
+    dtype=torch.float32,
+)  # fmt: skip
+
+
+def box_corners_torch(boxes: torch.Tensor) -> torch.Tensor:
+    """(N, 7) LiDAR boxes -> (N, 8, 3) corners, same order as detmatch.geometry.box3d_corners."""
+    local = _UNIT.to(boxes)[None] * boxes[:, None, 3:6]
+    c, s = torch.cos(boxes[:, 6])[:, None], torch.sin(boxes[:, 6])[:, None]
+    x = local[..., 0] * c - local[..., 1] * s
+    y = local[..., 0] * s + local[..., 1] * c
+    return torch.stack([x, y, local[..., 2]], dim=-1) + boxes[:, None, 0:3]
+
+
+def project_boxes_torch(
+    boxes: torch.Tensor, calib: Calibration, image_size: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable DESIGN.md step-1 projection of (N, 7) LiDAR boxes.
+
+    Returns (N, 4) clipped xyxy boxes and (N,) bool validity: at least 3 corners inside the
+    image and a mean corner depth of at least 0.5 m.
+    """
+    width, height = image_size
+    corners = box_corners_torch(boxes)
+    projection = torch.as_tensor(calib.lidar_to_image, dtype=boxes.dtype, device=boxes.device)
+    homogeneous = torch.cat([corners, torch.ones_like(corners[..., :1])], dim=-1)
+    projected = homogeneous @ projection.T
+    depth = projected[..., 2]
+    uv = projected[..., :2] / depth.clamp(min=PROJECTION_MIN_DEPTH)[..., None]
+    inside = (
+        (depth > 0)
+        & (uv[..., 0] >= 0)
+        & (uv[..., 0] < width)
+        & (uv[..., 1] >= 0)
+        & (uv[..., 1] < height)
+    )
+    valid = (inside.sum(dim=1) >= 3) & (depth.mean(dim=1) >= 0.5)
+    low = uv.min(dim=1).values
+    high = uv.max(dim=1).values
+    xyxy = torch.stack(
+        [low[:, 0].clamp(0, width - 1), low[:, 1].clamp(0, height - 1),
+         high[:, 0].clamp(0, width - 1), high[:, 1].clamp(0, height - 1)], dim=1,
+    )  # fmt: skip
+    return xyxy, valid
+
+
+def giou_torch(boxes1: torch.Tensor, boxes2: torch.Tensor) -> torch.Tensor:
+    """Row-wise generalised IoU of (N, 4) xyxy boxes."""
+    area1 = (boxes1[:, 2] - boxes1[:, 0]).clamp(min=0) * (boxes1[:, 3] - boxes1[:, 1]).clamp(min=0)
+    area2 = (boxes2[:, 2] - boxes2[:, 0]).clamp(min=0) * (boxes2[:, 3] - boxes2[:, 1]).clamp(min=0)
+    low = torch.maximum(boxes1[:, :2], boxes2[:, :2])
+    high = torch.minimum(boxes1[:, 2:], boxes2[:, 2:])
+    inter = (high - low).clamp(min=0).prod(dim=1)
+    union = area1 + area2 - inter
+    hull = (
+        (torch.maximum(boxes1[:, 2:], boxes2[:, 2:]) - torch.minimum(boxes1[:, :2], boxes2[:, :2]))
+        .clamp(min=0)
+        .prod(dim=1)
+    )
+    eps = 1e-7
+    return inter / (union + eps) - (hull - union) / (hull + eps)
+
+
+@dataclass(frozen=True)
+class ConsistencyWeights:
+    class_weight: float = 2.0
+    l1_weight: float = 20.0
+    giou_weight: float = 2.0
+    use_class: bool = True
+    use_box: bool = True
+
+
+@dataclass(frozen=True)
+class TeacherTargets2D:
+    """One frame's matched 2D teacher pseudo-labels, original pixels: boxes (M, 4), classes
+    (M,), probabilities (M, C)."""
+
+    boxes: np.ndarray
+    classes: np.ndarray
+    probabilities: np.ndarray
+
+
+def consistency_loss(
+    model_3d: PointPillars3D,
+    heatmap: torch.Tensor,
+    regression: torch.Tensor,
+    transforms: list[CloudTransform],
+    calibs: list[Calibration],
+    image_sizes: list[tuple[int, int]],
+    targets: list[TeacherTargets2D],
+    weights: ConsistencyWeights,
+    tau_hung: float,
+) -> tuple[torch.Tensor, int]:
+    """Consistency loss over a batch of the 3D student's raw outputs (B, C, h, w), (B, 8, h, w).
+
+    Returns the loss (mean over matched pairs, 0 when none) and the number of matched pairs.
+    """
+    config = model_3d.config
+    width = heatmap.shape[3]
+    probabilities = torch.sigmoid(heatmap)
+    scores, _, pixel, peak_probabilities = heatmap_peaks(
+        probabilities.detach(), config.max_detections
+    )
+    logits = gather_at(heatmap, pixel)  # (B, K, C), differentiable
+    boxes = model_3d.boxes_from_regression(pixel, gather_at(regression, pixel), width)
+    class_terms, l1_terms, giou_terms = [], [], []
+    for b, target in enumerate(targets):
+        keep = scores[b] > config.score_threshold
+        if len(target.boxes) == 0 or not bool(keep.any()):
+            continue
+        unaugmented = transforms[b].invert_boxes_torch(boxes[b][keep])
+        projected, valid = project_boxes_torch(unaugmented, calibs[b], image_sizes[b])
+        if not bool(valid.any()):
+            continue
+        projected, frame_logits = projected[valid], logits[b][keep][valid]
+        frame_probabilities = peak_probabilities[b][keep][valid]
+        cost = matching_cost(
+            projected.detach().double().numpy(),
+            frame_probabilities.double().numpy(),
+            target.boxes,
+            target.probabilities,
+            image_sizes[b],
+        )
+        rows, cols = hungarian_match(cost, tau_hung)
+        if rows.size == 0:
+            continue
+        rows_t, cols_t = torch.from_numpy(rows), torch.from_numpy(cols)
+        if weights.use_class:
+            onehot = torch.zeros_like(frame_logits[rows_t])
+            onehot[torch.arange(len(rows)), torch.from_numpy(target.classes[cols]).long()] = 1.0
+            class_terms.append(sigmoid_focal_loss(frame_logits[rows_t], onehot).sum(dim=1))
+        if weights.use_box:
+            w, h = image_sizes[b]
+            scale = torch.tensor([w, h, w, h], dtype=projected.dtype)
+            teacher = torch.as_tensor(target.boxes, dtype=projected.dtype)[cols_t]
+            l1_terms.append((projected[rows_t] / scale - teacher / scale).abs().mean(dim=1))
+            giou_terms.append(1.0 - giou_torch(projected[rows_t], teacher))
+    pairs = sum(len(t) for t in class_terms) if class_terms else sum(len(t) for t in l1_terms)
+    loss = heatmap.sum() * 0.0
+    if class_terms:
+        loss = loss + weights.class_weight * torch.cat(class_terms).mean()
+    if l1_terms:
+        loss = loss + weights.l1_weight * torch.cat(l1_terms).mean()
+        loss = loss + weights.giou_weight * torch.cat(giou_terms).mean()
+    return loss, pairs
