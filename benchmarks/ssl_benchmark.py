@@ -1,0 +1,254 @@
+"""The semi-supervised benchmark (DESIGN.md section 5): labeled-only vs confidence thresholding
+vs DetMatch from the same pre-trained weights on the same labeled split.
+
+    detmatch synth --out data/synth2k --frames 2000 --seed 0 --workers 2
+    detmatch split --data data/synth2k --fraction 0.05 --seed 0
+    python benchmarks/ssl_benchmark.py --config configs/ssl_cpu.toml --data data/synth2k \
+        --out runs/ssl_s0 --ssl-steps 800
+
+Stages (each skipped when its run directory already holds a finished checkpoint):
+1. labeled-only pre-training on [data] train_split ([train] steps);
+2. confidence thresholding and DetMatch, each --ssl-steps from the pre-trained weights;
+3. moderate R40 AP per class on the val split, 2D (bbox) and 3D, with the gain over
+   labeled-only (the paper's Tables 1 and 2);
+4. pseudo-label precision / recall on unlabeled frames against their hidden labels: the
+   pre-trained teacher's detections filtered by each method's rule (the same detections, two
+   filters), restricted to the camera's view where the labels exist;
+5. a PNG like the paper's Figure 3: each 3D teacher box's true IoU against its max class score
+   and against its best 2D-3D matching cost.
+Writes OUT/ssl_benchmark.json and OUT/figure3.png and prints the tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from detmatch.config import ExperimentConfig, load_config
+from detmatch.data.dataset import FrameDataset, collate
+from detmatch.eval.pseudo_labels import pseudo_label_quality
+from detmatch.geometry import pairwise_iou_3d, project_boxes_to_image
+from detmatch.inference import predict_batch
+from detmatch.matching import matching_cost
+from detmatch.models.detector3d import pillar_grid
+from detmatch.pseudo_labels import camera_view_mask, confident_detections, match_detections
+from detmatch.structures import Boxes2D, Boxes3D, Detections, Labels
+from detmatch.training.checkpoint import list_checkpoints
+from detmatch.training.distributed import init_distributed
+from detmatch.training.evaluation import evaluate_detectors
+from detmatch.training.predict import load_detectors
+from detmatch.training.semi_supervised import SemiSupervisedTrainer
+from detmatch.training.trainer import SupervisedTrainer
+
+IOU_3D = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
+IOU_2D = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
+
+
+def finished(run_dir: Path, steps: int) -> bool:
+    found = list_checkpoints(run_dir)
+    return bool(found) and found[-1].name == f"step_{steps:08d}.pt"
+
+
+def train_stage(trainer_type, config: ExperimentConfig, run_dir: Path) -> float:
+    """Train (resuming if interrupted) unless finished; returns the wall seconds spent."""
+    if finished(run_dir, config.train.steps):
+        return 0.0
+    trainer = trainer_type(config, run_dir, init_distributed())
+    trainer.resume()
+    start = time.perf_counter()
+    trainer.run()
+    return time.perf_counter() - start
+
+
+def as_labels(
+    names: list[str], boxes_3d: np.ndarray, boxes_2d: np.ndarray, scores: np.ndarray
+) -> Labels:
+    n = len(names)
+    return Labels(
+        names=np.array(names, dtype=object), boxes_2d=Boxes2D(boxes_2d.reshape(n, 4)),
+        boxes_3d=Boxes3D(boxes_3d.reshape(n, 7)), truncated=np.zeros(n),
+        occluded=np.zeros(n, dtype=np.int64), alpha=np.zeros(n), scores=scores,
+    )  # fmt: skip
+
+
+def pseudo_label_sets(
+    det_2d: Detections,
+    det_3d: Detections,
+    sample,
+    classes: tuple[str, ...],
+    config: ExperimentConfig,
+) -> dict[str, Labels]:
+    """The same teacher detections filtered by each method's rule, as Labels rows: 3D rows carry
+    zero 2D boxes and 2D rows zero 3D boxes, so each counts for its own modality only."""
+    ssl = config.ssl
+    size = sample.image_transform.original_size
+    in_view = camera_view_mask(det_3d.boxes, sample.calib, size)
+    confident_3d = confident_detections(det_3d[in_view], ssl.tau_3d)
+    confident_2d = confident_detections(det_2d, ssl.tau_2d)
+    matched = match_detections(det_3d, det_2d, sample.calib, size, ssl.tau_hung, None)
+    sets = {}
+    for method, (b3, c3, s3, b2, c2, s2) in {
+        "confidence": (confident_3d.boxes, confident_3d.classes, confident_3d.scores,
+                       confident_2d.boxes, confident_2d.classes, confident_2d.scores),
+        "detmatch": (matched.boxes_3d, matched.class_3d, matched.score_3d,
+                     matched.boxes_2d, matched.class_2d, matched.score_2d),
+    }.items():  # fmt: skip
+        names = [classes[c] for c in c3] + [classes[c] for c in c2]
+        boxes_3d = np.concatenate([b3.reshape(-1, 7), np.zeros((len(c2), 7))])
+        boxes_2d = np.concatenate([np.zeros((len(c3), 4)), b2.reshape(-1, 4)])
+        sets[method] = as_labels(names, boxes_3d, boxes_2d, np.concatenate([s3, s2]))
+    return sets
+
+
+def analyse_teacher(
+    checkpoint: Path, config: ExperimentConfig, max_frames: int
+) -> tuple[dict, np.ndarray]:
+    """Pseudo-label quality of the pre-trained teacher under both rules, and Figure 3's points:
+    rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections."""
+    _, model_2d, model_3d, _ = load_detectors(checkpoint)
+    data = config.data
+    dataset = FrameDataset(
+        data.root,
+        config.ssl.unlabeled_split,
+        data.classes,
+        data.image_size,
+        pillar_grid(config.detector3d),
+    )
+    count = min(max_frames, len(dataset))
+    loader = torch.utils.data.DataLoader(
+        torch.utils.data.Subset(dataset, range(count)), batch_size=4, collate_fn=collate
+    )
+    pseudo: dict[str, list[Labels]] = {"confidence": [], "detmatch": []}
+    ground_truth, points = [], []
+    for batch in loader:
+        for sample, (det_2d, det_3d) in zip(
+            batch.samples, predict_batch(model_2d, model_3d, batch), strict=True
+        ):
+            labels = dataset.kitti.load_frame(sample.frame_id).labels
+            ground_truth.append(labels)
+            for method, rows in pseudo_label_sets(
+                det_2d, det_3d, sample, data.classes, config
+            ).items():
+                pseudo[method].append(rows)
+            size = sample.image_transform.original_size
+            view = det_3d[camera_view_mask(det_3d.boxes, sample.calib, size)]
+            objects = np.isin(labels.names, data.classes)
+            if len(view) == 0 or len(det_2d) == 0:
+                continue
+            iou = np.zeros(len(view))
+            if objects.any():
+                iou = pairwise_iou_3d(view.boxes, labels.boxes_3d.data[objects]).max(axis=1)
+            cost = matching_cost(
+                project_boxes_to_image(view.boxes, sample.calib, size), view.probabilities,
+                det_2d.boxes, det_2d.probabilities, size,
+            ).min(axis=1)  # fmt: skip
+            points.append(np.column_stack([iou, view.scores, cost]))
+    quality = {
+        method: pseudo_label_quality(rows, ground_truth, data.classes, IOU_3D, IOU_2D)
+        for method, rows in pseudo.items()
+    }
+    return quality, np.concatenate(points) if points else np.zeros((0, 3))
+
+
+def draw_figure(points: np.ndarray, out: Path) -> dict[str, float]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.stats import spearmanr
+
+    iou, score, cost = points.T
+    rho_score = float(spearmanr(iou, score).statistic)
+    rho_cost = float(spearmanr(iou, -cost).statistic)
+    figure, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=110)
+    axes[0].scatter(score, iou, s=4, alpha=0.4)
+    axes[0].set_xlabel("max class score (3D teacher)")
+    axes[0].set_title(f"IoU vs confidence (Spearman {rho_score:.2f})")
+    axes[1].scatter(cost, iou, s=4, alpha=0.4, color="tab:orange")
+    axes[1].axvline(-1.5, color="grey", linestyle="--", label="tau_hung = -1.5")
+    axes[1].set_xlabel("best 2D-3D matching cost")
+    axes[1].set_title(f"IoU vs matching cost (Spearman {rho_cost:.2f} with -cost)")
+    axes[1].legend()
+    for axis in axes:
+        axis.set_ylabel("true 3D IoU with ground truth")
+        axis.set_ylim(0, 1)
+    figure.tight_layout()
+    figure.savefig(out)
+    return {"spearman_iou_score": rho_score, "spearman_iou_negative_cost": rho_cost}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--config", default="configs/ssl_cpu.toml")
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--ssl-steps", type=int, default=800)
+    parser.add_argument("--analysis-frames", type=int, default=300)
+    parser.add_argument("--methods", default="confidence,detmatch")
+    args = parser.parse_args()
+    out = Path(args.out)
+    base = load_config(args.config).replace("data", root=args.data)
+    classes = base.data.classes
+    timings = {"pretrain": train_stage(SupervisedTrainer, base, out / "pretrain")}
+    for method in args.methods.split(","):
+        config = base.replace("ssl", method=method, pretrained=str(out / "pretrain"))
+        config = config.replace("train", steps=args.ssl_steps, eval_every=10**9)
+        timings[method] = train_stage(SemiSupervisedTrainer, config, out / method)
+
+    val = FrameDataset(
+        args.data, base.data.val_split, classes, base.data.image_size, pillar_grid(base.detector3d)
+    )
+    results = {}
+    for name, run in [("labeled-only", "pretrain"), *[(m, m) for m in args.methods.split(",")]]:
+        _, model_2d, model_3d, _ = load_detectors(out / run)
+        metrics = evaluate_detectors(model_2d, model_3d, val, classes)
+        results[name] = {k: metrics[k] for k in ("2d", "3d", "bev")}
+
+    print(f"split {base.data.train_split}; val frames {len(val)}; SSL steps {args.ssl_steps}")
+    for modality, label in (("3d", "3D AP (moderate, R40)"), ("2d", "2D AP (moderate, R40)")):
+        print(f"\n{label}\n| method | " + " | ".join(classes) + " | mAP | gain |")
+        print("|---|" + "---|" * (len(classes) + 2))
+        reference = results["labeled-only"][modality]["mAP"]
+        for name, metrics in results.items():
+            row = metrics[modality]
+            gain = row["mAP"] - reference
+            print(
+                f"| {name} | "
+                + " | ".join(f"{row[c]:.1f}" for c in classes)
+                + f" | {row['mAP']:.1f} | {gain:+.1f} |"
+            )
+
+    quality, points = analyse_teacher(out / "pretrain", base, args.analysis_frames)
+    frames = args.analysis_frames
+    print(f"\nPseudo-label quality of the pre-trained teacher on {frames} unlabeled frames")
+    print("| rule | modality | class | precision | recall | labels | objects |")
+    print("|---|---|---|---|---|---|---|")
+    for method, per_class in quality.items():
+        for modality in ("3d", "2d"):
+            for name in classes:
+                q = per_class[name][modality]
+                cells = [method, modality, name, f"{q['precision']:.3f}", f"{q['recall']:.3f}"]
+                cells += [str(q["num_pseudo"]), str(q["num_gt"])]
+                print("| " + " | ".join(cells) + " |")
+    correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
+    print(f"\nFigure 3: {out / 'figure3.png'} ({len(points)} 3D teacher boxes) {correlation}")
+    summary = {
+        "results": results,
+        "pseudo_label_quality": quality,
+        "figure3": correlation,
+        "train_wall_s": timings,
+    }
+    (out / "ssl_benchmark.json").write_text(json.dumps(summary, indent=2))
+    print("rerun: python " + " ".join(sys.argv))
+
+
+if __name__ == "__main__":
+    main()
