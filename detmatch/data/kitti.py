@@ -345,14 +345,18 @@ def write_image_set(path: str | os.PathLike, ids: list[str]) -> None:
     atomic_write_bytes(path, "".join(f"{i}\n" for i in ids).encode())
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write to a temporary file in the same directory, then rename: no reader sees half a file."""
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = False) -> None:
+    """Write to a temporary file in the same directory, then rename: no reader sees half a file.
+    With durable, the data is fsynced before the rename (it survives a power cut)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
+            if durable:
+                handle.flush()
+                os.fsync(handle.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

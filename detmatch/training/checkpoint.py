@@ -3,14 +3,15 @@ weights_only=True (no arbitrary pickles)."""
 
 from __future__ import annotations
 
-import os
+import io
 import random
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from detmatch.data.kitti import atomic_write_bytes
 
 CHECKPOINT_PATTERN = re.compile(r"^step_(\d{8})\.pt$")
 
@@ -24,19 +25,10 @@ def checkpoint_path(run_dir: Path, step: int) -> Path:
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """torch.save to a temporary file in the same directory, fsync, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            torch.save(state, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Serialise, then write atomically and durably (temporary file, fsync, rename)."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    atomic_write_bytes(path, buffer.getvalue(), durable=True)
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
