@@ -112,6 +112,20 @@ def _predict(args: argparse.Namespace) -> int:
     return 0
 
 
+def _label(args: argparse.Namespace) -> int:
+    from serving.labeler import Labeler
+    from serving.offline import label_split
+
+    labeler = Labeler.from_repository(Path(args.repository), args.version)
+    summary = label_split(labeler, Path(args.data), args.split, Path(args.out), args.tau_hung)
+    print(
+        f"labeled {summary.frames} frames with model version {summary.model_version}: "
+        f"{summary.labels} labels ({summary.matched} matched 2D-3D, {summary.lidar_only} "
+        f"LiDAR-only outside the camera's view) -> {args.out}/3d, {args.out}/2d, {args.out}/labels"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="detmatch", description="Joint 2D-3D semi-supervised detection (DetMatch)."
@@ -168,6 +182,17 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--split", required=True, help="ImageSets split, e.g. val")
     predict.add_argument("--out", required=True, help="output directory (gets 3d/ and 2d/)")
     predict.set_defaults(handler=_predict)
+
+    label = commands.add_parser(
+        "label", help="label a data set with an exported model version (onnxruntime, no torch)"
+    )
+    label.add_argument("--repository", required=True, help="model repository (detmatch-export)")
+    label.add_argument("--version", help="model version (default: the newest promoted one)")
+    label.add_argument("--data", required=True, help="KITTI-layout data set root")
+    label.add_argument("--split", required=True, help="ImageSets split, e.g. train_unlabeled")
+    label.add_argument("--out", required=True, help="output directory (gets 3d/, 2d/, labels/)")
+    label.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
+    label.set_defaults(handler=_label)
 
     evaluate = commands.add_parser("eval", help="KITTI object-benchmark evaluation")
     evaluate.add_argument("--gt-dir", required=True, help="directory of KITTI label files")

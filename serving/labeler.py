@@ -1,0 +1,283 @@
+"""The torch-free labeler: one paired frame in, DetMatch labels out.
+
+numpy + scipy + onnxruntime only. A frame goes through:
+1. the 2D graph, which takes the original (H, W, 3) uint8 RGB image and does training's
+   preprocessing itself (bilinear resize to the model's input size exactly as torch's
+   F.interpolate(align_corners=False) does, normalisation), decodes, and returns boxes in the
+   original image's pixels;
+2. `detmatch.models.pillars.pillarize` (the numpy function training uses) and the 3D graph,
+   which decodes LiDAR-frame boxes;
+3. each detector's score threshold (the manifest's, or the call's), then
+   `detmatch.pseudo_labels.match_detections`: projection, Hungarian matching with tau_hung and
+   the fallback to confident LiDAR-only labels outside the camera's view.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid, pillarize
+from detmatch.pseudo_labels import MatchedLabels, match_detections
+from detmatch.structures import Calibration, Detections
+from serving.repository import (
+    DECODED_OUTPUTS,
+    INPUTS_2D,
+    INPUTS_3D,
+    RepositoryError,
+    load_manifest,
+    served_version,
+    verify_checksums,
+    version_dir,
+)
+from serving.sessions import SessionSettings, make_session
+
+
+@dataclass(frozen=True)
+class FrameLabels:
+    """The labeler's answer for one frame.
+
+    labels: the matched labels (see MatchedLabels: LiDAR-frame 3D boxes, original-pixel 2D
+    boxes, both classes and scores, cost, provenance); detections_2d / detections_3d: each
+    detector's detections above its score threshold (labels index into them);
+    thresholds: the values used; timings: seconds per stage ('detector2d', 'pillarize',
+    'detector3d', 'matching') and in all ('total', input checks included).
+    """
+
+    model_version: str
+    classes: tuple[str, ...]
+    image_size: tuple[int, int]
+    labels: MatchedLabels
+    detections_2d: Detections
+    detections_3d: Detections
+    thresholds: dict[str, float | None]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    @property
+    def names(self) -> list[str]:
+        """Class name of each label: the 3D detector's class (the 3D label's class)."""
+        return [self.classes[c] for c in self.labels.class_3d]
+
+
+class Labeler:
+    """Both ONNX models of one repository version and the manifest that describes them."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        settings: SessionSettings | None = None,
+        check_files: bool = True,
+    ) -> None:
+        """path: a version directory; check_files: verify the manifest's checksums first."""
+        self.path = Path(path)
+        self.manifest = load_manifest(self.path)
+        if check_files:
+            verify_checksums(self.path, self.manifest)
+        try:
+            self.version: str = str(self.manifest["version"])
+            self.classes: tuple[str, ...] = tuple(self.manifest["classes"])
+            spec_2d = self.manifest["models"]["detector2d"]
+            spec_3d = self.manifest["models"]["detector3d"]
+            grid = spec_3d["preprocessing"]["grid"]
+            self.grid = PillarGrid(
+                tuple(float(v) for v in grid["point_cloud_range"]),
+                tuple(float(v) for v in grid["pillar_size"]),
+                int(grid["max_points_per_pillar"]),
+                int(grid["max_pillars"]),
+            )
+            self.score_threshold_2d = float(spec_2d["score_threshold"])
+            self.score_threshold_3d = float(spec_3d["score_threshold"])
+            self.tau_hung = float(self.manifest["matching"]["tau_hung"])
+            tau_outside = self.manifest["matching"]["tau_3d_outside_view"]
+            self.tau_3d_outside_view = None if tau_outside is None else float(tau_outside)
+        except (KeyError, TypeError, ValueError) as error:
+            raise RepositoryError(f"{self.path}: unusable manifest: {error!r}") from None
+        self.settings = settings or SessionSettings()
+        self.session_2d = make_session(self.path / spec_2d["file"], self.settings)
+        self.session_3d = make_session(self.path / spec_3d["file"], self.settings)
+        for session, inputs, name in (
+            (self.session_2d, INPUTS_2D, "detector2d"),
+            (self.session_3d, INPUTS_3D, "detector3d"),
+        ):
+            got_inputs = tuple(i.name for i in session.get_inputs())
+            got_outputs = {o.name for o in session.get_outputs()}
+            if got_inputs != inputs or not set(DECODED_OUTPUTS) <= got_outputs:
+                raise RepositoryError(
+                    f"{name} of {self.path} has inputs {got_inputs} and outputs "
+                    f"{sorted(got_outputs)}; expected {inputs} and {DECODED_OUTPUTS}"
+                )
+
+    @classmethod
+    def from_repository(
+        cls,
+        root: str | os.PathLike,
+        version: str | int | None = None,
+        settings: SessionSettings | None = None,
+    ) -> Labeler:
+        """A version of a repository; by default the served one (the newest promoted)."""
+        if version is None:
+            version = served_version(root)
+            if version is None:
+                raise FileNotFoundError(
+                    f"model repository {root} has no promoted version; promote one "
+                    "(detmatch-export --repository ROOT --promote VERSION) or name a version"
+                )
+        return cls(version_dir(root, version), settings)
+
+    # --- the two models ------------------------------------------------------------------------
+
+    def detect_2d(self, image: np.ndarray) -> Detections:
+        """(H, W, 3) uint8 RGB -> the 2D graph's top-k detections (unthresholded), boxes in the
+        image's pixels."""
+        outputs = self.session_2d.run(list(DECODED_OUTPUTS), {"image": np.ascontiguousarray(image)})
+        return _detections(outputs)
+
+    def detect_3d(self, points: np.ndarray) -> tuple[Detections, float, float]:
+        """(N, 4) float32 LiDAR points -> (the 3D graph's top-k detections (unthresholded),
+        seconds in pillarize, seconds in the graph)."""
+        start = time.perf_counter()
+        features, coords, num_points = pillarize(points, self.grid)
+        if len(coords) == 0:
+            # No occupied pillar. A single pillar with zero points at cell (0, 0) scatters a
+            # zero feature, exactly the empty canvas; the graph needs at least one pillar.
+            features = np.zeros((1, self.grid.max_points_per_pillar, PILLAR_FEATURES), np.float32)
+            coords = np.zeros((1, 2), dtype=np.int64)
+            num_points = np.zeros(1, dtype=np.int64)
+        mark = time.perf_counter()
+        outputs = self.session_3d.run(
+            list(DECODED_OUTPUTS),
+            {"features": features, "coords": coords, "num_points": num_points},
+        )
+        return _detections(outputs), mark - start, time.perf_counter() - mark
+
+    def warm_up(self, image_size: tuple[int, int] = (1242, 375)) -> None:
+        """Run both graphs once on an empty frame (first runs allocate and tune kernels)."""
+        self.detect_2d(np.zeros((image_size[1], image_size[0], 3), dtype=np.uint8))
+        self.detect_3d(np.zeros((0, 4), dtype=np.float32))
+
+    # --- a frame ---------------------------------------------------------------------------------
+
+    def label(
+        self,
+        image: np.ndarray,
+        points: np.ndarray,
+        calib: Calibration,
+        *,
+        tau_hung: float | None = None,
+        score_threshold_2d: float | None = None,
+        score_threshold_3d: float | None = None,
+        tau_3d_outside_view: float | None = None,
+        outside_view_fallback: bool = True,
+    ) -> FrameLabels:
+        """Label one paired frame.
+
+        image: (H, W, 3) uint8 RGB; points: (N, 4) float32 LiDAR x, y, z, intensity;
+        calib: the frame's calibration. Thresholds default to the manifest's; with
+        outside_view_fallback False (or no tau_3d_outside_view here or in the manifest) no
+        LiDAR-only labels are made. Raises ValueError naming the input and the problem for
+        malformed inputs.
+        """
+        start = time.perf_counter()
+        validate_frame(image, points, calib)
+        tau_hung = _override("tau_hung", tau_hung, self.tau_hung)
+        threshold_2d = _probability(
+            "score_threshold_2d", score_threshold_2d, self.score_threshold_2d
+        )
+        threshold_3d = _probability(
+            "score_threshold_3d", score_threshold_3d, self.score_threshold_3d
+        )
+        tau_outside = None
+        if outside_view_fallback and (
+            tau_3d_outside_view is not None or self.tau_3d_outside_view is not None
+        ):
+            tau_outside = _probability(
+                "tau_3d_outside_view", tau_3d_outside_view, self.tau_3d_outside_view
+            )
+
+        timings: dict[str, float] = {}
+        mark = time.perf_counter()
+        detections_2d = self.detect_2d(image)
+        timings["detector2d"] = time.perf_counter() - mark
+        detections_3d, timings["pillarize"], timings["detector3d"] = self.detect_3d(points)
+        mark = time.perf_counter()
+        detections_2d = detections_2d[detections_2d.scores > threshold_2d]
+        detections_3d = detections_3d[detections_3d.scores > threshold_3d]
+        image_size = (int(image.shape[1]), int(image.shape[0]))
+        labels = match_detections(
+            detections_3d, detections_2d, calib, image_size, tau_hung, tau_outside
+        )
+        end = time.perf_counter()
+        timings["matching"] = end - mark
+        timings["total"] = end - start
+        return FrameLabels(
+            model_version=self.version,
+            classes=self.classes,
+            image_size=image_size,
+            labels=labels,
+            detections_2d=detections_2d,
+            detections_3d=detections_3d,
+            thresholds={
+                "tau_hung": tau_hung,
+                "score_threshold_2d": threshold_2d,
+                "score_threshold_3d": threshold_3d,
+                "tau_3d_outside_view": tau_outside,
+            },
+            timings=timings,
+        )
+
+
+def validate_frame(image: np.ndarray, points: np.ndarray, calib: Calibration) -> None:
+    """ValueError naming the field and the problem for anything the models cannot take."""
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"image: expected a numpy array, got {type(image).__name__}")
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image: expected shape (H, W, 3) RGB, got {image.shape}")
+    if image.dtype != np.uint8:
+        raise ValueError(f"image: expected dtype uint8, got {image.dtype}")
+    if image.shape[0] < 1 or image.shape[1] < 1:
+        raise ValueError(f"image: empty image of shape {image.shape}")
+    if not isinstance(points, np.ndarray):
+        raise ValueError(f"points: expected a numpy array, got {type(points).__name__}")
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise ValueError(f"points: expected shape (N, 4) x, y, z, intensity, got {points.shape}")
+    if points.dtype != np.float32:
+        raise ValueError(f"points: expected dtype float32, got {points.dtype}")
+    if not np.isfinite(points).all():
+        bad = int(np.count_nonzero(~np.isfinite(points).all(axis=1)))
+        raise ValueError(f"points: {bad} points hold NaN or Inf")
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib: expected a Calibration, got {type(calib).__name__}")
+
+
+def _detections(outputs: list[np.ndarray]) -> Detections:
+    boxes, scores, classes, probabilities = outputs
+    return Detections(
+        boxes.astype(np.float64),
+        scores.astype(np.float64),
+        classes.astype(np.int64),
+        probabilities.astype(np.float64),
+    )
+
+
+def _override(name: str, value: float | None, default: float) -> float:
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _probability(name: str, value: float | None, default: float | None) -> float:
+    value = _override(name, value, default)
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{name}: expected a probability threshold in [0, 1), got {value}")
+    return value

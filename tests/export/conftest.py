@@ -1,0 +1,5 @@
+from tests.onnx_fixtures import (  # noqa: F401
+    _one_torch_thread,
+    exported_repository,
+    trained_checkpoint,
+)
