@@ -6,18 +6,8 @@ import numpy as np
 import torch
 
 from detmatch.data.dataset import Batch, flip_boxes_3d
-from detmatch.data.kitti import (
-    PLACEHOLDER_DIMENSIONS,
-    PLACEHOLDER_LOCATION,
-    PLACEHOLDER_ROTATION,
-    KittiObjects,
-)
-from detmatch.geometry import (
-    lidar_to_kitti_camera_boxes,
-    limit_period,
-    points_in_image,
-    project_boxes_to_image,
-)
+from detmatch.data.kitti import KittiObjects
+from detmatch.data.results import result_objects_2d, result_objects_3d
 from detmatch.models.detector2d import CenterNet2D
 from detmatch.models.detector3d import PointPillars3D
 from detmatch.structures import Calibration, Detections
@@ -59,27 +49,10 @@ def predict_batch(
     return results
 
 
-def in_camera_view(
-    boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int]
-) -> np.ndarray:
-    """(N, 7) LiDAR boxes -> (N,) bool: the box centre projects into the image, in front."""
-    return points_in_image(np.asarray(boxes).reshape(-1, 7)[:, :3], calib, image_size)
-
-
 def detections_2d_to_objects(detections: Detections, class_names: tuple[str, ...]) -> KittiObjects:
     """2D detections -> KITTI result rows with KITTI's placeholder 3D fields."""
-    n = len(detections)
-    return KittiObjects(
-        names=np.array([class_names[c] for c in detections.classes], dtype=object),
-        truncated=np.full(n, -1.0),
-        occluded=np.full(n, -1, dtype=np.int64),
-        alpha=np.full(n, PLACEHOLDER_ROTATION),
-        bbox=detections.boxes,
-        dimensions=np.tile(PLACEHOLDER_DIMENSIONS, (n, 1)),
-        location=np.tile(PLACEHOLDER_LOCATION, (n, 1)),
-        rotation_y=np.full(n, PLACEHOLDER_ROTATION),
-        score=detections.scores,
-    )
+    names = [class_names[c] for c in detections.classes]
+    return result_objects_2d(detections.boxes, names, detections.scores)
 
 
 def detections_3d_to_objects(
@@ -88,21 +61,6 @@ def detections_3d_to_objects(
     calib: Calibration,
     image_size: tuple[int, int],
 ) -> KittiObjects:
-    """3D detections in the camera's view -> KITTI result rows (camera-frame box, projected 2D
-    box, alpha). Boxes whose centre is outside the image are dropped: KITTI labels only the
-    camera's field of view."""
-    detections = detections[in_camera_view(detections.boxes, calib, image_size)]
-    location, dimensions, rotation_y = lidar_to_kitti_camera_boxes(detections.boxes, calib)
-    alpha = limit_period(rotation_y - np.arctan2(location[:, 0], location[:, 2]))
-    n = len(detections)
-    return KittiObjects(
-        names=np.array([class_names[c] for c in detections.classes], dtype=object),
-        truncated=np.full(n, -1.0),
-        occluded=np.full(n, -1, dtype=np.int64),
-        alpha=alpha,
-        bbox=project_boxes_to_image(detections.boxes, calib, image_size),
-        dimensions=dimensions,
-        location=location,
-        rotation_y=rotation_y,
-        score=detections.scores,
-    )
+    """3D detections whose centre is in the camera's view -> KITTI result rows."""
+    names = [class_names[c] for c in detections.classes]
+    return result_objects_3d(detections.boxes, names, detections.scores, calib, image_size)

@@ -23,24 +23,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
-from detmatch.data.kitti import (
-    PLACEHOLDER_DIMENSIONS,
-    PLACEHOLDER_LOCATION,
-    PLACEHOLDER_ROTATION,
-    KittiDataset,
-    KittiObjects,
-    atomic_write_bytes,
-    write_objects,
-)
-from detmatch.geometry import (
-    lidar_to_kitti_camera_boxes,
-    limit_period,
-    points_in_image,
-    project_boxes_to_image,
-)
+from detmatch.data.kitti import KittiDataset, KittiObjects, atomic_write_bytes, write_objects
+from detmatch.data.results import result_objects_2d, result_objects_3d
 from detmatch.pseudo_labels import Provenance
 from detmatch.structures import Calibration
 from serving.labeler import FrameLabels, Labeler
@@ -53,42 +39,18 @@ PROVENANCE_NAMES = {
 
 def labels_to_objects_3d(result: FrameLabels, calib: Calibration) -> KittiObjects:
     """Labels whose 3D box centre projects into the image -> KITTI result rows (camera-frame
-    box, projected 2D box, alpha; the 3D class and score). The same conversion as
-    `detmatch.inference.detections_3d_to_objects`, without its torch import."""
+    box, projected 2D box, alpha; the 3D class and score)."""
     labels = result.labels
-    keep = points_in_image(labels.boxes_3d[:, :3], calib, result.image_size)
-    boxes = labels.boxes_3d[keep]
-    location, dimensions, rotation_y = lidar_to_kitti_camera_boxes(boxes, calib)
-    n = len(boxes)
-    return KittiObjects(
-        names=np.array([result.classes[c] for c in labels.class_3d[keep]], dtype=object),
-        truncated=np.full(n, -1.0),
-        occluded=np.full(n, -1, dtype=np.int64),
-        alpha=limit_period(rotation_y - np.arctan2(location[:, 0], location[:, 2])),
-        bbox=project_boxes_to_image(boxes, calib, result.image_size),
-        dimensions=dimensions,
-        location=location,
-        rotation_y=rotation_y,
-        score=labels.score_3d[keep],
-    )
+    names = [result.classes[c] for c in labels.class_3d]
+    return result_objects_3d(labels.boxes_3d, names, labels.score_3d, calib, result.image_size)
 
 
 def labels_to_objects_2d(result: FrameLabels) -> KittiObjects:
     """Matched labels' 2D boxes -> KITTI result rows with KITTI's placeholder 3D fields."""
     labels = result.labels
     keep = labels.matched
-    n = int(keep.sum())
-    return KittiObjects(
-        names=np.array([result.classes[c] for c in labels.class_2d[keep]], dtype=object),
-        truncated=np.full(n, -1.0),
-        occluded=np.full(n, -1, dtype=np.int64),
-        alpha=np.full(n, PLACEHOLDER_ROTATION),
-        bbox=labels.boxes_2d[keep],
-        dimensions=np.tile(PLACEHOLDER_DIMENSIONS, (n, 1)),
-        location=np.tile(PLACEHOLDER_LOCATION, (n, 1)),
-        rotation_y=np.full(n, PLACEHOLDER_ROTATION),
-        score=labels.score_2d[keep],
-    )
+    names = [result.classes[c] for c in labels.class_2d[keep]]
+    return result_objects_2d(labels.boxes_2d[keep], names, labels.score_2d[keep])
 
 
 def labels_to_json(frame_id: str, result: FrameLabels) -> dict[str, Any]:

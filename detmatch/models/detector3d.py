@@ -52,7 +52,7 @@ class PillarFeatureNet(nn.Module):
         """features (P, M, 9), num_points (P,) -> (P, channels)."""
         pillars, max_points, _ = features.shape
         x = self.linear(features.reshape(pillars * max_points, PILLAR_FEATURES))
-        x = F.relu(self.norm(x)).reshape(pillars, max_points, -1)
+        x = F.relu(self.norm(x)).reshape(pillars, max_points, self.linear.out_features)
         valid = torch.arange(max_points, device=features.device).unsqueeze(
             0
         ) < num_points.unsqueeze(1)

@@ -95,8 +95,13 @@ def pillarize(points: np.ndarray, grid: PillarGrid) -> tuple[np.ndarray, np.ndar
 
     features = np.zeros((num_pillars, max_points, PILLAR_FEATURES), dtype=np.float32)
     features[pillar_of_slot, slot, :4] = kept_points
-    sums = np.zeros((num_pillars, 3), dtype=np.float64)
-    np.add.at(sums, pillar_of_slot, kept_points[:, :3])
+    sums = np.stack(
+        [
+            np.bincount(pillar_of_slot, weights=kept_points[:, k], minlength=num_pillars)
+            for k in range(3)
+        ],
+        axis=1,
+    )
     means = (sums / np.maximum(kept, 1)[:, None]).astype(np.float32)
     features[pillar_of_slot, slot, 4:7] = kept_points[:, :3] - means[pillar_of_slot]
     coords = np.stack([occupied // nx, occupied % nx], axis=1).astype(np.int64)

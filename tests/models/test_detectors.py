@@ -150,3 +150,13 @@ def test_pillarize_keeps_points_and_features():
     centre = (coords[first, ::-1] + 0.5) * np.array(grid.pillar_size) + [x_min, y_min]
     np.testing.assert_allclose(pillar[:, 7:9], points[:2, :2] - centre, atol=1e-5)
     assert np.all(features[first, 2:] == 0)
+
+
+def test_3d_detector_handles_an_empty_point_cloud(detector_3d):
+    features, coords, counts = pillarize(np.zeros((0, 4), dtype=np.float32), detector_3d.grid)
+    assert features.shape == (0, TINY.detector3d.max_points_per_pillar, 9)
+    with torch.no_grad():
+        boxes, scores, _, _ = Detector3DExport(detector_3d.eval())(
+            torch.from_numpy(features), torch.from_numpy(coords), torch.from_numpy(counts)
+        )
+    assert boxes.shape == (1, TINY.detector3d.max_detections, 7) and torch.isfinite(scores).all()
