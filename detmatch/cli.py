@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import socket
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -126,6 +127,36 @@ def _label(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve(args: argparse.Namespace) -> int:
+    import os
+
+    from serving.logs import configure_logging
+    from serving.server import ServerConfig, serve
+
+    configure_logging()
+    config = ServerConfig(
+        address=f"{args.host}:{args.port}",
+        workers=args.workers,
+        max_message_bytes=args.max_message_mb * 1024 * 1024,
+        tls_cert=Path(args.tls_cert) if args.tls_cert else None,
+        tls_key=Path(args.tls_key) if args.tls_key else None,
+        token=os.environ.get(args.token_env) or None,
+        metrics_port=args.metrics_port,
+        poll_s=args.poll_s,
+        grace_s=args.grace_s,
+    )
+    serve(Path(args.repository), Path(args.store), config, shard=args.shard)
+    return 0
+
+
+def _store_export(args: argparse.Namespace) -> int:
+    from serving.store import export_store
+
+    count = export_store(Path(args.store), Path(args.out))
+    print(f"exported {count} stored frames to {args.out} (KITTI layout, labels in label_2)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="detmatch", description="Joint 2D-3D semi-supervised detection (DetMatch)."
@@ -193,6 +224,33 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--out", required=True, help="output directory (gets 3d/, 2d/, labels/)")
     label.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
     label.set_defaults(handler=_label)
+
+    serve = commands.add_parser("serve", help="run the gRPC auto-labeling service (no torch)")
+    serve.add_argument("--repository", required=True, help="model repository (detmatch-export)")
+    serve.add_argument("--store", required=True, help="label store directory")
+    serve.add_argument("--port", type=int, default=50051, help="0 picks a free port")
+    serve.add_argument("--host", default="127.0.0.1", help="address to bind, e.g. 0.0.0.0")
+    serve.add_argument("--workers", type=int, default=4, help="concurrent requests")
+    serve.add_argument("--shard", default=socket.gethostname().split(".")[0] or "default",
+                       help="this replica's label store shard (default: host name)")  # fmt: skip
+    serve.add_argument("--max-message-mb", type=int, default=64, help="largest request, MiB")
+    serve.add_argument("--tls-cert", help="PEM server certificate (with --tls-key)")
+    serve.add_argument("--tls-key", help="PEM server private key")
+    serve.add_argument("--token-env", default="DETMATCH_TOKEN",
+                       help="variable holding the bearer token (unset: no auth)")  # fmt: skip
+    serve.add_argument("--metrics-port", type=int, help="Prometheus /metrics port (off if unset)")
+    serve.add_argument("--poll-s", type=float, default=2.0, help="model repository poll period")
+    serve.add_argument("--grace-s", type=float, default=30.0, help="drain time after SIGTERM")
+    serve.set_defaults(handler=_serve)
+
+    store = commands.add_parser("store", help="the label store of `detmatch serve`")
+    store_commands = store.add_subparsers(dest="store_command", required=True, metavar="ACTION")
+    store_export = store_commands.add_parser(
+        "export", help="a KITTI-layout data set of every stored frame and its labels"
+    )
+    store_export.add_argument("--store", required=True, help="label store directory")
+    store_export.add_argument("--out", required=True, help="output directory (KITTI layout)")
+    store_export.set_defaults(handler=_store_export)
 
     evaluate = commands.add_parser("eval", help="KITTI object-benchmark evaluation")
     evaluate.add_argument("--gt-dir", required=True, help="directory of KITTI label files")

@@ -1,0 +1,140 @@
+"""Fixtures of the gRPC service tests: a served labeler of the tiny exported model, a running
+in-process server on 127.0.0.1 port 0, and `detmatch serve` in a torch-free subprocess."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import grpc
+import pytest
+
+from serving.labeler import Labeler
+from serving.repository import promote
+from serving.server import ServerConfig, create_server
+from serving.service import LabelingService, ModelSlot
+from serving.store import LabelStore
+from tests.conftest import REPO
+from tests.onnx_fixtures import (  # noqa: F401
+    _one_torch_thread,
+    exported_repository,
+    trained_checkpoint,
+)
+
+
+@dataclass
+class Running:
+    port: int
+    service: LabelingService
+    store_root: Path
+    health: object
+
+    @property
+    def target(self) -> str:
+        return f"127.0.0.1:{self.port}"
+
+
+@pytest.fixture(scope="session")
+def served_labeler(exported_repository) -> Labeler:  # noqa: F811
+    labeler = Labeler.from_repository(exported_repository)
+    labeler.warm_up()
+    return labeler
+
+
+@contextlib.contextmanager
+def running_server(
+    slot: ModelSlot, store_root: Path, config: ServerConfig | None = None
+) -> Iterator[Running]:
+    store = LabelStore(store_root, "s0")
+    service = LabelingService(slot, store)
+    server, port, health = create_server(service, config or ServerConfig())
+    server.start()
+    try:
+        yield Running(port, service, store_root, health)
+    finally:
+        server.stop(None).wait()
+        store.close()
+
+
+@pytest.fixture
+def server(tmp_path, served_labeler) -> Iterator[Running]:
+    slot = ModelSlot()
+    slot.swap(served_labeler)
+    with running_server(slot, tmp_path / "store") as running:
+        yield running
+
+
+def copy_repository(source: Path, target: Path) -> Path:
+    shutil.copytree(source, target)
+    return target
+
+
+def add_version(root: Path, version: str, corrupt: bool = False) -> None:
+    """A copy of version 000001 as `version`, promoted (corrupt: its 3D graph truncated)."""
+    path = root / version
+    shutil.copytree(root / "000001", path)
+    manifest = json.loads((path / "manifest.json").read_text())
+    manifest["version"] = version
+    (path / "manifest.json").write_text(json.dumps(manifest))
+    if corrupt:
+        model = path / manifest["models"]["detector3d"]["file"]
+        model.write_bytes(model.read_bytes()[:100])
+    promote(root, version)
+
+
+def wait_until_serving(target: str, timeout_s: float = 60.0) -> None:
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    deadline = time.monotonic() + timeout_s
+    with grpc.insecure_channel(target) as channel:
+        stub = health_pb2_grpc.HealthStub(channel)
+        while time.monotonic() < deadline:
+            try:
+                status = stub.Check(health_pb2.HealthCheckRequest(), timeout=5).status
+            except grpc.RpcError:
+                status = None
+            if status == health_pb2.HealthCheckResponse.SERVING:
+                return
+            time.sleep(0.05)
+    raise TimeoutError(f"{target} did not become SERVING in {timeout_s} s")
+
+
+TORCH_FREE_SERVE = (
+    "import sys; sys.modules['torch'] = None; "
+    "from detmatch.cli import main; sys.exit(main(['serve'] + sys.argv[1:]))"
+)
+
+
+@contextlib.contextmanager
+def serve_process(
+    repository: Path, store: Path, *args: str
+) -> Iterator[tuple[subprocess.Popen, str]]:
+    """`detmatch serve` in a subprocess that cannot import torch; yields (process, target)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    command = [sys.executable, "-c", TORCH_FREE_SERVE, "--repository", str(repository),
+               "--store", str(store), "--port", "0", "--shard", "s0", *args]  # fmt: skip
+    process = subprocess.Popen(
+        command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        line = process.stdout.readline()
+        if not line.startswith("listening on "):
+            process.kill()
+            raise RuntimeError(f"server did not start: {line!r} {process.stderr.read()[-3000:]}")
+        target = line.split()[-1]
+        wait_until_serving(target)
+        yield process, target
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait(timeout=30)
+        process.stdout.close()
+        process.stderr.close()
