@@ -13,7 +13,8 @@ fsynced staging directory, so a reader sees a complete version or none; versions
 modified afterwards, except for the PROMOTED marker. The served version is the newest version
 carrying the marker; removing the marker from a bad version rolls back to the previous one.
 
-Standard library only (no numpy, no torch): the server and the exporter share it.
+No torch: the server and the exporter share it. Files are written with `detmatch.data.kitti`'s
+atomic writer (temporary file, fsync, rename, directory fsync).
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+from detmatch.data.kitti import atomic_write_bytes, fsync_path
 
 MANIFEST_FORMAT = 1
 MANIFEST_FILE = "manifest.json"
@@ -102,7 +105,7 @@ def promote(root: str | os.PathLike, version: str | int) -> str:
     path = version_dir(root, version)
     load_manifest(path)
     record = {"promoted_at": _utc_now()}
-    _atomic_write(path / PROMOTED_FILE, (json.dumps(record) + "\n").encode())
+    atomic_write_bytes(path / PROMOTED_FILE, (json.dumps(record) + "\n").encode(), durable=True)
     return path.name
 
 
@@ -110,7 +113,7 @@ def demote(root: str | os.PathLike, version: str | int) -> str:
     """Remove a version's PROMOTED marker (a rollback to the previous promoted version)."""
     path = version_dir(root, version)
     (path / PROMOTED_FILE).unlink(missing_ok=True)
-    _fsync_dir(path)
+    fsync_path(path)
     return path.name
 
 
@@ -219,7 +222,7 @@ def publish(
         for file in staging.iterdir():
             with open(file, "rb") as handle:
                 os.fsync(handle.fileno())
-        _fsync_dir(staging)
+        fsync_path(staging)
         try:
             os.rename(staging, target)
         except OSError:
@@ -227,36 +230,15 @@ def publish(
             if version is None and target.exists():
                 continue
             raise
-        _fsync_dir(root)
+        fsync_path(root)
         return name, target
     raise RepositoryError(f"could not find a free version number in {root}")
 
 
 def write_json(path: Path, value: Any) -> None:
-    _atomic_write(path, (json.dumps(value, indent=2, sort_keys=False) + "\n").encode())
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o644)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    atomic_write_bytes(
+        path, (json.dumps(value, indent=2, sort_keys=False) + "\n").encode(), durable=True
+    )
 
 
 def _utc_now() -> str:

@@ -32,6 +32,7 @@ import numpy as np
 from detmatch.data.kitti import (
     atomic_write_bytes,
     format_objects,
+    fsync_path,
     validate_frame_id,
     write_calib,
     write_image_set,
@@ -151,14 +152,14 @@ class LabelStore:
         }
         calib_path = training / "calib" / f"{frame_id}.txt"
         write_calib(calib_path, calib)
-        _fsync(calib_path)
+        fsync_path(calib_path)
         contents[f"training/calib/{frame_id}.txt"] = calib_path.read_bytes()
         for relative, data in contents.items():
             if relative.startswith("training/calib/"):
                 continue
             atomic_write_bytes(self.path / relative, data, durable=True)
         for directory in {(self.path / r).parent for r in contents}:
-            _fsync(directory)
+            fsync_path(directory)
         return {r: hashlib.sha256(d).hexdigest() for r, d in contents.items()}
 
 
@@ -240,12 +241,3 @@ def _record(row: tuple, shard: str) -> StoredFrame:
         provenance=json.loads(row[6]),
         files=json.loads(row[7]),
     )
-
-
-def _fsync(path: Path) -> None:
-    """fsync a file or a directory (a directory: the renames inside it are durable)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

@@ -345,13 +345,24 @@ def write_image_set(path: str | os.PathLike, ids: list[str]) -> None:
     atomic_write_bytes(path, "".join(f"{i}\n" for i in ids).encode())
 
 
+def fsync_path(path: str | os.PathLike) -> None:
+    """fsync a file, or a directory (which makes the renames inside it durable)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = False) -> None:
     """Write to a temporary file in the same directory, then rename: no reader sees half a file.
-    With durable, the data is fsynced before the rename (it survives a power cut)."""
+    The file gets mode 0644 like an ordinary file. With durable, the data is fsynced before the
+    rename and the directory after it (the file survives a power cut)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o644)
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             if durable:
@@ -361,6 +372,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = Fal
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    if durable:
+        fsync_path(path.parent)
 
 
 def _read_text(path: str | os.PathLike) -> str:
