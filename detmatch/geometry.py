@@ -122,16 +122,9 @@ def boxes_in_image_mask(
 ) -> np.ndarray:
     """(N, 7) LiDAR boxes -> (N,) bool: at least `min_corners` corners in front of the camera and
     inside the image."""
-    width, height = image_size
-    uv, depth = lidar_to_image(box3d_corners(boxes), calib)
-    inside = (
-        (depth > 0)
-        & (uv[..., 0] >= 0)
-        & (uv[..., 0] < width)
-        & (uv[..., 1] >= 0)
-        & (uv[..., 1] < height)
-    )
-    return inside.sum(axis=1) >= min_corners
+    corners = box3d_corners(boxes)
+    inside = points_in_image(corners.reshape(-1, 3), calib, image_size)
+    return inside.reshape(len(corners), 8).sum(axis=1) >= min_corners
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,7 +27,12 @@ from detmatch.training.checkpoint import load_checkpoint, resolve_checkpoint
 from detmatch.training.consistency import ConsistencyWeights, TeacherTargets2D, consistency_loss
 from detmatch.training.distributed import DistributedContext
 from detmatch.training.ema import ema_decay, ema_update
-from detmatch.training.trainer import SupervisedTrainer, clip_and_step, labelled_area, warmup_factor
+from detmatch.training.trainer import (
+    SupervisedTrainer,
+    clip_and_step,
+    ground_truth_targets,
+    warmup_factor,
+)
 
 
 @dataclass(frozen=True)
@@ -158,21 +163,10 @@ class SemiSupervisedTrainer(SupervisedTrainer):
             torch.cat([labeled.pillar_counts, unlabeled.student_pillar_counts]),
             batch_size=2 * n,
         )
+        targets_2d, targets_3d = ground_truth_targets(student_2d, student_3d, labeled.samples)
+        supervised_2d = student_2d.loss((heat_2d[:n], size_2d[:n], offset_2d[:n]), targets_2d)
+        supervised_3d = student_3d.loss((heat_3d[:n], regression_3d[:n]), targets_3d)
         input_size = labeled.samples[0].image_transform.input_size
-        supervised_2d = student_2d.loss(
-            (heat_2d[:n], size_2d[:n], offset_2d[:n]),
-            [
-                student_2d.build_targets(s.boxes_2d, s.classes_2d, input_size)
-                for s in labeled.samples
-            ],
-        )
-        supervised_3d = student_3d.loss(
-            (heat_3d[:n], regression_3d[:n]),
-            [
-                student_3d.build_targets(s.boxes_3d, s.classes_3d, labelled_area(student_3d, s))
-                for s in labeled.samples
-            ],
-        )
         # The 2D pseudo-label loss is classification only (Unbiased Teacher).
         pseudo_2d = student_2d.loss(
             (heat_2d[n:], size_2d[n:], offset_2d[n:]),

@@ -162,6 +162,22 @@ def labelled_area(model_3d: PointPillars3D, sample: Sample) -> np.ndarray:
     return points_in_image(points, sample.calib, size, check_rows=False).reshape(centres.shape[:2])
 
 
+def ground_truth_targets(
+    model_2d: CenterNet2D, model_3d: PointPillars3D, samples: list[Sample]
+) -> tuple[list[dict[str, np.ndarray]], list[dict[str, np.ndarray]]]:
+    """Per-sample 2D and 3D training targets from the samples' labels (3D background learned
+    only inside the camera's view)."""
+    targets_2d = [
+        model_2d.build_targets(s.boxes_2d, s.classes_2d, s.image_transform.input_size)
+        for s in samples
+    ]
+    targets_3d = [
+        model_3d.build_targets(s.boxes_3d, s.classes_3d, labelled_area(model_3d, s))
+        for s in samples
+    ]
+    return targets_2d, targets_3d
+
+
 def supervised_losses(
     model_2d: CenterNet2D,
     model_3d: PointPillars3D,
@@ -171,14 +187,7 @@ def supervised_losses(
 ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """Ground-truth losses of both detectors on a batch. forward_* are the (possibly DDP-wrapped)
     modules to call; model_* own the losses and targets."""
-    targets_2d = [
-        model_2d.build_targets(s.boxes_2d, s.classes_2d, s.image_transform.input_size)
-        for s in batch.samples
-    ]
-    targets_3d = [
-        model_3d.build_targets(s.boxes_3d, s.classes_3d, labelled_area(model_3d, s))
-        for s in batch.samples
-    ]
+    targets_2d, targets_3d = ground_truth_targets(model_2d, model_3d, batch.samples)
     losses_2d = model_2d.loss(forward_2d(batch.images), targets_2d)
     outputs_3d = forward_3d(
         batch.pillar_features, batch.pillar_coords, batch.pillar_counts, batch_size=len(batch)
