@@ -40,11 +40,23 @@ from detmatch.models.detector3d import pillar_grid
 from detmatch.pseudo_labels import camera_view_mask, confident_detections, match_detections
 from detmatch.structures import Boxes2D, Boxes3D, Detections, Labels
 from detmatch.training.checkpoint import list_checkpoints
-from detmatch.training.distributed import init_distributed
+from detmatch.training.distributed import DistributedContext, init_distributed
 from detmatch.training.evaluation import evaluate_detectors
 from detmatch.training.predict import load_detectors
 from detmatch.training.semi_supervised import SemiSupervisedTrainer
 from detmatch.training.trainer import SupervisedTrainer
+
+# What each method name of --methods trains: [ssl] overrides (the DetMatch ablations of the
+# paper's Table 5: matching only, + class consistency, + box consistency, full).
+METHODS = {
+    "confidence": {"method": "confidence"},
+    "detmatch": {"method": "detmatch"},
+    "detmatch-matching-only": {
+        "method": "detmatch", "consistency_class": False, "consistency_box": False,
+    },
+    "detmatch-class-consistency": {"method": "detmatch", "consistency_box": False},
+    "detmatch-box-consistency": {"method": "detmatch", "consistency_class": False},
+}  # fmt: skip
 
 IOU_3D = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
 IOU_2D = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
@@ -55,11 +67,13 @@ def finished(run_dir: Path, steps: int) -> bool:
     return bool(found) and found[-1].name == f"step_{steps:08d}.pt"
 
 
-def train_stage(trainer_type, config: ExperimentConfig, run_dir: Path) -> float:
+def train_stage(
+    trainer_type, config: ExperimentConfig, run_dir: Path, context: DistributedContext
+) -> float:
     """Train (resuming if interrupted) unless finished; returns the wall seconds spent."""
     if finished(run_dir, config.train.steps):
         return 0.0
-    trainer = trainer_type(config, run_dir, init_distributed())
+    trainer = trainer_type(config, run_dir, context)
     trainer.resume()
     start = time.perf_counter()
     trainer.run()
@@ -122,7 +136,10 @@ def analyse_teacher(
     )
     count = min(max_frames, len(dataset))
     loader = torch.utils.data.DataLoader(
-        torch.utils.data.Subset(dataset, range(count)), batch_size=4, collate_fn=collate
+        torch.utils.data.Subset(dataset, range(count)),
+        batch_size=4,
+        collate_fn=collate,
+        num_workers=data.num_workers,
     )
     pseudo: dict[str, list[Labels]] = {"confidence": [], "detmatch": []}
     ground_truth, points = [], []
@@ -192,24 +209,55 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     parser.add_argument("--ssl-steps", type=int, default=800)
     parser.add_argument("--analysis-frames", type=int, default=300)
-    parser.add_argument("--methods", default="confidence,detmatch")
+    parser.add_argument(
+        "--methods",
+        default="confidence,detmatch",
+        help="comma-separated, from: " + ", ".join(METHODS) + " (empty: pre-training only)",
+    )
+    parser.add_argument("--split", help="override [data] train_split (the labeled frames)")
+    parser.add_argument("--unlabeled-split", help="override [ssl] unlabeled_split")
+    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    parser.add_argument("--workers", type=int, help="override [data] num_workers")
+    parser.add_argument(
+        "--train-only",
+        action="store_true",
+        help="stop after training (to train methods in parallel processes, then report once)",
+    )
     args = parser.parse_args()
+    methods = [m for m in args.methods.split(",") if m]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        parser.error(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
     out = Path(args.out)
     base = load_config(args.config).replace("data", root=args.data)
+    if args.split:
+        base = base.replace("data", train_split=args.split)
+    if args.unlabeled_split:
+        base = base.replace("ssl", unlabeled_split=args.unlabeled_split)
+    if args.workers is not None:
+        base = base.replace("data", num_workers=args.workers)
     classes = base.data.classes
-    timings = {"pretrain": train_stage(SupervisedTrainer, base, out / "pretrain")}
-    for method in args.methods.split(","):
-        config = base.replace("ssl", method=method, pretrained=str(out / "pretrain"))
+    context = init_distributed(args.device)
+    timings = {"pretrain": train_stage(SupervisedTrainer, base, out / "pretrain", context)}
+    for method in methods:
+        config = base.replace("ssl", **METHODS[method], pretrained=str(out / "pretrain"))
         config = config.replace("train", steps=args.ssl_steps, eval_every=10**9)
-        timings[method] = train_stage(SemiSupervisedTrainer, config, out / method)
+        timings[method] = train_stage(SemiSupervisedTrainer, config, out / method, context)
+    if args.train_only:
+        print(json.dumps({"train_wall_s": timings}))
+        return
 
     val = FrameDataset(
         args.data, base.data.val_split, classes, base.data.image_size, pillar_grid(base.detector3d)
     )
     results = {}
-    for name, run in [("labeled-only", "pretrain"), *[(m, m) for m in args.methods.split(",")]]:
+    for name, run in [("labeled-only", "pretrain"), *[(m, m) for m in methods]]:
         _, model_2d, model_3d, _ = load_detectors(out / run)
-        metrics = evaluate_detectors(model_2d, model_3d, val, classes)
+        model_2d.to(context.device)
+        model_3d.to(context.device)
+        metrics = evaluate_detectors(
+            model_2d, model_3d, val, classes, num_workers=base.data.num_workers
+        )
         results[name] = {k: metrics[k] for k in ("2d", "3d", "bev")}
 
     print(f"split {base.data.train_split}; val frames {len(val)}; SSL steps {args.ssl_steps}")

@@ -85,7 +85,7 @@ def _train(args: argparse.Namespace) -> int:
             f"--method {config.ssl.method} starts from pre-trained weights: pass --pretrained "
             "CKPT (a labeled-only run) or set [ssl] pretrained"
         )
-    context = init_distributed()
+    context = init_distributed(args.device)
     try:
         trainer_type = SupervisedTrainer
         if config.ssl.method != "labeled-only":
@@ -205,6 +205,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="override [ssl] method: labeled-only, confidence thresholding or DetMatch",
     )
     train.add_argument("--pretrained", help="override [ssl] pretrained: the labeled-only run")
+    train.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
+    )
     train.set_defaults(handler=_train)
 
     predict = commands.add_parser("predict", help="write KITTI result files of both detectors")

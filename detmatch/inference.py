@@ -25,6 +25,7 @@ def predict_batch(
     threshold, mapped back to the un-augmented frame (original pixels; LiDAR frame)."""
     model_2d.eval()
     model_3d.eval()
+    batch = batch.to(next(model_3d.parameters()).device)
     decoded_2d = model_2d.decode(*model_2d(batch.images))
     decoded_3d = model_3d.decode(
         *model_3d(

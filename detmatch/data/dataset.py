@@ -6,6 +6,7 @@ detections map back to the un-augmented frame exactly.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -118,6 +119,16 @@ class Batch:
 
     def __len__(self) -> int:
         return len(self.samples)
+
+    def to(self, device: torch.device) -> Batch:
+        """The batch with its tensors on device (the samples stay numpy)."""
+        return dataclasses.replace(
+            self,
+            images=self.images.to(device, non_blocking=True),
+            pillar_features=self.pillar_features.to(device, non_blocking=True),
+            pillar_coords=self.pillar_coords.to(device, non_blocking=True),
+            pillar_counts=self.pillar_counts.to(device, non_blocking=True),
+        )
 
 
 def make_sample(

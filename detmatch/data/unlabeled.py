@@ -3,6 +3,7 @@ strong view of the same frame, with every geometric transform recorded (DESIGN.m
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,17 @@ class UnlabeledBatch:
 
     def __len__(self) -> int:
         return len(self.weak)
+
+    def to(self, device: torch.device) -> UnlabeledBatch:
+        """The batch with its tensors on device (transforms and samples stay numpy)."""
+        return dataclasses.replace(
+            self,
+            weak=self.weak.to(device),
+            student_images=self.student_images.to(device, non_blocking=True),
+            student_pillar_features=self.student_pillar_features.to(device, non_blocking=True),
+            student_pillar_coords=self.student_pillar_coords.to(device, non_blocking=True),
+            student_pillar_counts=self.student_pillar_counts.to(device, non_blocking=True),
+        )
 
 
 class UnlabeledDataset(torch.utils.data.Dataset):

@@ -11,6 +11,11 @@ import torch.nn.functional as F
 from torch import nn
 
 
+def tensor_like(array: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """A numpy target as a tensor on the device of the prediction it is compared with."""
+    return torch.from_numpy(array).to(like.device, non_blocking=True)
+
+
 def conv_bn_relu(in_channels: int, out_channels: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=False),

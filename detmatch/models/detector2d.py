@@ -24,6 +24,7 @@ from detmatch.models.common import (
     heatmap_focal_loss,
     heatmap_peaks,
     stage,
+    tensor_like,
 )
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
@@ -141,9 +142,7 @@ class CenterNet2D(nn.Module):
         """Losses against per-image targets from build_targets. Without box_regression only the
         classification (heatmap) loss is returned: the pseudo-label loss of DESIGN.md section 3."""
         heatmap, size, offset = outputs
-        target_heatmap = torch.from_numpy(np.stack([t["heatmap"] for t in targets])).to(
-            heatmap.device
-        )
+        target_heatmap = tensor_like(np.stack([t["heatmap"] for t in targets]), heatmap)
         losses = {
             "heatmap": self.config.heatmap_weight * heatmap_focal_loss(heatmap, target_heatmap)
         }
@@ -163,14 +162,14 @@ def regression_losses(
     for b, target in enumerate(targets):
         if len(target["index"]) == 0:
             continue
-        index = torch.from_numpy(target["index"]).to(size.device)
+        index = tensor_like(target["index"], size)
         predicted_size = size[b].flatten(1)[:, index].t()
         predicted_offset = offset[b].flatten(1)[:, index].t()
         size_terms.append(
-            F.l1_loss(predicted_size, torch.from_numpy(target["size"]), reduction="sum")
+            F.l1_loss(predicted_size, tensor_like(target["size"], size), reduction="sum")
         )
         offset_terms.append(
-            F.l1_loss(predicted_offset, torch.from_numpy(target["offset"]), reduction="sum")
+            F.l1_loss(predicted_offset, tensor_like(target["offset"], size), reduction="sum")
         )
     count = max(sum(len(t["index"]) for t in targets), 1)
     zero = size.sum() * 0.0

@@ -24,6 +24,7 @@ from detmatch.models.common import (
     heatmap_focal_loss,
     heatmap_peaks,
     stage,
+    tensor_like,
 )
 from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid
 
@@ -223,21 +224,21 @@ class PointPillars3D(nn.Module):
     ) -> dict[str, torch.Tensor]:
         """Focal heatmap loss and L1 regression at object centres (averaged over objects)."""
         heatmap, regression = outputs
-        target_heatmap = torch.from_numpy(np.stack([t["heatmap"] for t in targets]))
-        area = torch.from_numpy(np.stack([t["labelled_area"] for t in targets]))
-        focal = heatmap_focal_loss(
-            heatmap, target_heatmap.to(heatmap.device), area.to(heatmap.device)
-        )
+        target_heatmap = tensor_like(np.stack([t["heatmap"] for t in targets]), heatmap)
+        area = tensor_like(np.stack([t["labelled_area"] for t in targets]), heatmap)
+        focal = heatmap_focal_loss(heatmap, target_heatmap, area)
         losses = {"heatmap": self.config.heatmap_weight * focal}
         if box_regression:
             terms = []
             for b, target in enumerate(targets):
                 if len(target["index"]):
-                    index = torch.from_numpy(target["index"]).to(regression.device)
+                    index = tensor_like(target["index"], regression)
                     predicted = regression[b].flatten(1)[:, index].t()
                     terms.append(
                         F.l1_loss(
-                            predicted, torch.from_numpy(target["regression"]), reduction="sum"
+                            predicted,
+                            tensor_like(target["regression"], regression),
+                            reduction="sum",
                         )
                     )
             count = max(sum(len(t["index"]) for t in targets), 1)

@@ -139,8 +139,8 @@ def consistency_loss(
         projected, frame_logits = projected[valid], logits[b][keep][valid]
         frame_probabilities = peak_probabilities[b][keep][valid]
         cost = matching_cost(
-            projected.detach().double().numpy(),
-            frame_probabilities.double().numpy(),
+            projected.detach().cpu().double().numpy(),
+            frame_probabilities.cpu().double().numpy(),
             target.boxes,
             target.probabilities,
             image_sizes[b],
@@ -148,15 +148,18 @@ def consistency_loss(
         rows, cols = hungarian_match(cost, tau_hung)
         if rows.size == 0:
             continue
-        rows_t, cols_t = torch.from_numpy(rows), torch.from_numpy(cols)
+        rows_t = torch.from_numpy(rows).to(projected.device)
+        cols_t = torch.from_numpy(cols).to(projected.device)
         if weights.use_class:
             onehot = torch.zeros_like(frame_logits[rows_t])
-            onehot[torch.arange(len(rows)), torch.from_numpy(target.classes[cols]).long()] = 1.0
+            onehot[
+                rows_t.new_tensor(np.arange(len(rows))), rows_t.new_tensor(target.classes[cols])
+            ] = 1.0
             class_terms.append(sigmoid_focal_loss(frame_logits[rows_t], onehot).sum(dim=1))
         if weights.use_box:
             w, h = image_sizes[b]
-            scale = torch.tensor([w, h, w, h], dtype=projected.dtype)
-            teacher = torch.as_tensor(target.boxes, dtype=projected.dtype)[cols_t]
+            scale = projected.new_tensor([w, h, w, h])
+            teacher = projected.new_tensor(target.boxes)[cols_t]
             l1_terms.append((projected[rows_t] / scale - teacher / scale).abs().mean(dim=1))
             giou_terms.append(1.0 - giou_torch(projected[rows_t], teacher))
     pairs = sum(len(t) for t in class_terms) if class_terms else sum(len(t) for t in l1_terms)

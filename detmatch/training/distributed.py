@@ -31,13 +31,18 @@ class DistributedContext:
         return self.world_size > 1
 
 
-def init_distributed() -> DistributedContext:
+def init_distributed(device_kind: str = "auto") -> DistributedContext:
     """Join the process group torchrun describes in the environment; a plain process is rank 0
-    of 1 and needs no group."""
+    of 1 and needs no group. device_kind: "cuda" (GPU local_rank), "cpu", or "auto" (CUDA when
+    there is a GPU)."""
+    if device_kind not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu or cuda, not {device_kind!r}")
+    if device_kind == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: this torch build sees no CUDA GPU")
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    if torch.cuda.is_available():
+    if device_kind != "cpu" and torch.cuda.is_available():
         device = torch.device("cuda", local_rank)
         torch.cuda.set_device(device)
     else:

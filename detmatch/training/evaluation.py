@@ -28,13 +28,16 @@ def evaluate_detectors(
     dataset: FrameDataset,
     classes: tuple[str, ...],
     batch_size: int = 4,
+    num_workers: int = 0,
 ) -> dict[str, Any]:
     """Predict every frame of dataset (no augmentation) and score both modalities.
 
     Returns {"2d": moderate R40 bbox AP per class + mAP, "3d": ... 3D AP, "bev": ... BEV AP,
     "full_2d": evaluator output, "full_3d": evaluator output}.
     """
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, collate_fn=collate)
+    loader = torch.utils.data.DataLoader(
+        dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers
+    )
     ground_truth, objects_2d, objects_3d = [], [], []
     for batch in loader:
         for sample, (detections_2d, detections_3d) in zip(

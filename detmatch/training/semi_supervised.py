@@ -138,7 +138,7 @@ class SemiSupervisedTrainer(SupervisedTrainer):
         return labels
 
     def train_step(self, item: tuple[Batch, UnlabeledBatch]) -> dict[str, float]:
-        labeled, unlabeled = item
+        labeled, unlabeled = item[0].to(self.device), item[1].to(self.device)
         state, ssl, train = self.state, self.config.ssl, self.config.train
         student_2d, student_3d = state.model_2d, state.model_3d
         n = len(labeled)

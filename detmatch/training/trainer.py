@@ -205,14 +205,16 @@ class SupervisedTrainer:
         self.run_dir = Path(run_dir)
         self.context = context
         torch.manual_seed(config.train.seed)
-        model_2d, model_3d = build_detectors(config)
+        self.device = context.device
+        model_2d, model_3d = (model.to(self.device) for model in build_detectors(config))
         optimizer_2d, optimizer_3d = build_optimizers(config, model_2d, model_3d)
         self.state = TrainState(model_2d, model_3d, optimizer_2d, optimizer_3d)
         self.forward_2d: torch.nn.Module = model_2d
         self.forward_3d: torch.nn.Module = model_3d
         if context.enabled:
-            self.forward_2d = DistributedDataParallel(model_2d)
-            self.forward_3d = DistributedDataParallel(model_3d)
+            devices = [self.device] if self.device.type == "cuda" else None
+            self.forward_2d = DistributedDataParallel(model_2d, device_ids=devices)
+            self.forward_3d = DistributedDataParallel(model_3d, device_ids=devices)
         grid = pillar_grid(config.detector3d)
         data = config.data
         self.train_set = FrameDataset(
@@ -231,6 +233,7 @@ class SupervisedTrainer:
 
     def train_step(self, batch: Batch) -> dict[str, float]:
         state, train = self.state, self.config.train
+        batch = batch.to(self.device)
         state.model_2d.train()
         state.model_3d.train()
         losses_2d, losses_3d = supervised_losses(
@@ -291,7 +294,7 @@ class SupervisedTrainer:
         model_2d, model_3d = self.state.output_models
         return evaluate_detectors(
             model_2d, model_3d, self.val_set, self.config.data.classes,
-            batch_size=self.config.train.batch_size,
+            batch_size=self.config.train.batch_size, num_workers=self.config.data.num_workers,
         )  # fmt: skip
 
     def run(self, stop_after: int | None = None) -> TrainState:
