@@ -223,6 +223,11 @@ def main() -> None:
         action="store_true",
         help="stop after training (to train methods in parallel processes, then report once)",
     )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: report the pre-trained run and the methods whose runs finished",
+    )
     args = parser.parse_args()
     methods = [m for m in args.methods.split(",") if m]
     unknown = [m for m in methods if m not in METHODS]
@@ -238,11 +243,18 @@ def main() -> None:
         base = base.replace("data", num_workers=args.workers)
     classes = base.data.classes
     context = init_distributed(args.device)
-    timings = {"pretrain": train_stage(SupervisedTrainer, base, out / "pretrain", context)}
+    timings = {}
+    if not args.report_only:
+        timings["pretrain"] = train_stage(SupervisedTrainer, base, out / "pretrain", context)
     for method in methods:
         config = base.replace("ssl", **METHODS[method], pretrained=str(out / "pretrain"))
         config = config.replace("train", steps=args.ssl_steps, eval_every=10**9)
-        timings[method] = train_stage(SemiSupervisedTrainer, config, out / method, context)
+        if not args.report_only:
+            timings[method] = train_stage(SemiSupervisedTrainer, config, out / method, context)
+        elif not finished(out / method, args.ssl_steps):
+            print(f"{method}: run unfinished, left out of the report", file=sys.stderr)
+    if args.report_only:
+        methods = [m for m in methods if finished(out / m, args.ssl_steps)]
     if args.train_only:
         print(json.dumps({"train_wall_s": timings}))
         return

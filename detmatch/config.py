@@ -26,6 +26,9 @@ class ConfigError(ValueError):
     """A config file with an unknown key, a wrong type or an invalid value."""
 
 
+BOXES_2D_SOURCES = ("annotated", "projected")
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """Where the frames are and which classes the detectors learn."""
@@ -37,6 +40,18 @@ class DataConfig:
     # Images are resized to this (W, H) before the 2D detector; boxes are mapped back.
     image_size: tuple[int, int] = (624, 192)
     num_workers: int = 0
+    # The 2D detector's training boxes: "annotated" (the label files' 2D boxes) or
+    # "projected" (each 3D label's box projected into the image, as the authors' code trains
+    # it: the same convention as the projected 3D boxes the consistency loss compares with).
+    # Evaluation always uses the annotated boxes.
+    train_boxes_2d: str = "annotated"
+
+    def __post_init__(self) -> None:
+        if self.train_boxes_2d not in BOXES_2D_SOURCES:
+            raise ConfigError(
+                f"[data] train_boxes_2d must be one of {', '.join(BOXES_2D_SOURCES)}, "
+                f"got {self.train_boxes_2d!r}"
+            )
 
 
 @dataclass(frozen=True)

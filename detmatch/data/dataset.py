@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from detmatch.data.kitti import KittiDataset
+from detmatch.geometry import project_boxes_to_image
 from detmatch.models.pillars import PillarGrid, pillarize
 from detmatch.structures import Calibration, Frame
 
@@ -137,9 +138,11 @@ def make_sample(
     input_size: tuple[int, int],
     grid: PillarGrid,
     flip: bool,
+    projected_2d: bool = False,
 ) -> Sample:
     """Select the training classes, flip image and point cloud together if asked, resize the
-    image and pillarize the points."""
+    image and pillarize the points. projected_2d: 2D boxes are the 3D labels projected into
+    the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes."""
     transform = ImageTransform(frame.image_size, tuple(input_size), flip)
     boxes_2d, classes_2d = np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
     boxes_3d, classes_3d = np.zeros((0, 7)), np.zeros(0, dtype=np.int64)
@@ -149,8 +152,11 @@ def make_sample(
         class_ids = np.array(
             [classes.index(n) if n in classes else -1 for n in names], dtype=np.int64
         )
-        boxes_2d, classes_2d = transform.apply(frame.labels.boxes_2d.xyxy[keep]), class_ids[keep]
         boxes_3d, classes_3d = frame.labels.boxes_3d.data[keep], class_ids[keep]
+        boxes_2d = frame.labels.boxes_2d.xyxy[keep]
+        if projected_2d:
+            boxes_2d = project_boxes_to_image(boxes_3d, frame.calib, frame.image_size)
+        boxes_2d, classes_2d = transform.apply(boxes_2d), class_ids[keep]
         if flip:
             boxes_3d = flip_boxes_3d(boxes_3d)
     points = flip_points(frame.points) if flip else frame.points
@@ -221,6 +227,7 @@ class FrameDataset(torch.utils.data.Dataset):
         flip_probability: float = 0.5,
         seed: int = 0,
         with_labels: bool = True,
+        projected_2d: bool = False,
     ) -> None:
         self.kitti = KittiDataset(root)
         self.ids = self.kitti.ids(split)
@@ -233,6 +240,7 @@ class FrameDataset(torch.utils.data.Dataset):
         self.flip_probability = flip_probability
         self.seed = seed
         self.with_labels = with_labels
+        self.projected_2d = projected_2d
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -243,4 +251,4 @@ class FrameDataset(torch.utils.data.Dataset):
         flip = False
         if self.augment:
             flip = bool(np.random.default_rng([self.seed, draw]).random() < self.flip_probability)
-        return make_sample(frame, self.classes, self.input_size, self.grid, flip)
+        return make_sample(frame, self.classes, self.input_size, self.grid, flip, self.projected_2d)

@@ -220,6 +220,7 @@ class SupervisedTrainer:
         self.train_set = FrameDataset(
             data.root, data.train_split, data.classes, data.image_size, grid,
             augment=True, flip_probability=config.train.flip_probability, seed=config.train.seed,
+            projected_2d=data.train_boxes_2d == "projected",
         )  # fmt: skip
         self.val_set = FrameDataset(data.root, data.val_split, data.classes, data.image_size, grid)
 
