@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from detmatch.config import ExperimentConfig, load_config
+from detmatch.config import DEVICES, ExperimentConfig, load_config
 from detmatch.data.dataset import FrameDataset, collate
 from detmatch.eval.pseudo_labels import pseudo_label_quality
 from detmatch.geometry import pairwise_iou_3d, project_boxes_to_image
@@ -216,7 +216,7 @@ def main() -> None:
     )
     parser.add_argument("--split", help="override [data] train_split (the labeled frames)")
     parser.add_argument("--unlabeled-split", help="override [ssl] unlabeled_split")
-    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    parser.add_argument("--device", default="auto", choices=DEVICES)
     parser.add_argument("--workers", type=int, help="override [data] num_workers")
     parser.add_argument(
         "--train-only",
@@ -244,17 +244,16 @@ def main() -> None:
     classes = base.data.classes
     context = init_distributed(args.device)
     timings = {}
-    if not args.report_only:
-        timings["pretrain"] = train_stage(SupervisedTrainer, base, out / "pretrain", context)
-    for method in methods:
-        config = base.replace("ssl", **METHODS[method], pretrained=str(out / "pretrain"))
-        config = config.replace("train", steps=args.ssl_steps, eval_every=10**9)
-        if not args.report_only:
-            timings[method] = train_stage(SemiSupervisedTrainer, config, out / method, context)
-        elif not finished(out / method, args.ssl_steps):
-            print(f"{method}: run unfinished, left out of the report", file=sys.stderr)
     if args.report_only:
-        methods = [m for m in methods if finished(out / m, args.ssl_steps)]
+        for method in [m for m in methods if not finished(out / m, args.ssl_steps)]:
+            print(f"{method}: run unfinished, left out of the report", file=sys.stderr)
+            methods.remove(method)
+    else:
+        timings["pretrain"] = train_stage(SupervisedTrainer, base, out / "pretrain", context)
+        for method in methods:
+            config = base.replace("ssl", **METHODS[method], pretrained=str(out / "pretrain"))
+            config = config.replace("train", steps=args.ssl_steps, eval_every=10**9)
+            timings[method] = train_stage(SemiSupervisedTrainer, config, out / method, context)
     if args.train_only:
         print(json.dumps({"train_wall_s": timings}))
         return

@@ -9,6 +9,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from detmatch.config import DEVICES
+
 
 def _synth(args: argparse.Namespace) -> int:
     from detmatch.data.synth import generate_dataset
@@ -207,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--pretrained", help="override [ssl] pretrained: the labeled-only run")
     train.add_argument(
         "--device",
-        choices=("auto", "cpu", "cuda"),
+        choices=DEVICES,
         default="auto",
         help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
     )

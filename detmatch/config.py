@@ -28,6 +28,10 @@ class ConfigError(ValueError):
 
 BOXES_2D_SOURCES = ("annotated", "projected")
 
+# Where training runs: "auto" (the first CUDA GPU when torch sees one, else the CPU), "cpu"
+# or "cuda".
+DEVICES = ("auto", "cpu", "cuda")
+
 
 @dataclass(frozen=True)
 class DataConfig:

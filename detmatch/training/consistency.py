@@ -152,9 +152,8 @@ def consistency_loss(
         cols_t = torch.from_numpy(cols).to(projected.device)
         if weights.use_class:
             onehot = torch.zeros_like(frame_logits[rows_t])
-            onehot[
-                rows_t.new_tensor(np.arange(len(rows))), rows_t.new_tensor(target.classes[cols])
-            ] = 1.0
+            classes = rows_t.new_tensor(target.classes[cols])
+            onehot[torch.arange(len(rows), device=rows_t.device), classes] = 1.0
             class_terms.append(sigmoid_focal_loss(frame_logits[rows_t], onehot).sum(dim=1))
         if weights.use_box:
             w, h = image_sizes[b]

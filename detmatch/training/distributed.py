@@ -14,6 +14,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from detmatch.config import DEVICES
+
 
 @dataclass(frozen=True)
 class DistributedContext:
@@ -35,8 +37,8 @@ def init_distributed(device_kind: str = "auto") -> DistributedContext:
     """Join the process group torchrun describes in the environment; a plain process is rank 0
     of 1 and needs no group. device_kind: "cuda" (GPU local_rank), "cpu", or "auto" (CUDA when
     there is a GPU)."""
-    if device_kind not in ("auto", "cpu", "cuda"):
-        raise ValueError(f"device must be auto, cpu or cuda, not {device_kind!r}")
+    if device_kind not in DEVICES:
+        raise ValueError(f"device must be one of {', '.join(DEVICES)}, not {device_kind!r}")
     if device_kind == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: this torch build sees no CUDA GPU")
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
