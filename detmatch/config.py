@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from detmatch.constants import SCORE_THRESHOLD, TAU_2D, TAU_3D, TAU_HUNG
+from detmatch.records import RecordError, coerce, to_plain
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -66,7 +68,7 @@ class Detector2DConfig:
     depths: tuple[int, ...] = (1, 1, 2, 2)
     head_width: int = 64
     max_detections: int = 50
-    score_threshold: float = 0.1
+    score_threshold: float = SCORE_THRESHOLD
     heatmap_weight: float = 1.0
     size_weight: float = 0.1
     offset_weight: float = 1.0
@@ -87,7 +89,7 @@ class Detector3DConfig:
     # The head's output stride relative to the pillar grid.
     out_stride: int = 2
     max_detections: int = 50
-    score_threshold: float = 0.1
+    score_threshold: float = SCORE_THRESHOLD
     heatmap_weight: float = 1.0
     regression_weight: float = 0.25
 
@@ -125,9 +127,9 @@ class SemiSupervisedConfig:
     unlabeled_split: str = "train_unlabeled"
     # Checkpoint (or run directory) of the labeled-only pre-training both students start from.
     pretrained: str = ""
-    tau_3d: float = 0.3
-    tau_2d: float = 0.7
-    tau_hung: float = -1.5
+    tau_3d: float = TAU_3D
+    tau_2d: float = TAU_2D
+    tau_hung: float = TAU_HUNG
     # lambda: weight of both pseudo-label losses.
     pseudo_label_weight: float = 1.0
     # DetMatch weights the 2D pseudo-label (classification) loss x4 relative to the 3D one.
@@ -172,26 +174,6 @@ class ExperimentConfig:
         return dataclasses.replace(self, **{section: _build(section_type, current, section)})
 
 
-def _coerce(value: Any, annotation: Any, where: str) -> Any:
-    origin = typing.get_origin(annotation)
-    if origin is tuple:
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"{where} must be a list, got {value!r}")
-        args = typing.get_args(annotation)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], where) for v in value)
-        if len(value) != len(args):
-            raise ConfigError(f"{where} needs {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, where) for v, a in zip(value, args, strict=True))
-    if origin in (typing.Union, types.UnionType):
-        return value
-    if annotation is float and isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value)
-    if annotation in (int, str, bool) and type(value) is not annotation:
-        raise ConfigError(f"{where} must be {annotation.__name__}, got {value!r}")
-    return value
-
-
 def _build(section_type: type, values: dict[str, Any], section: str) -> Any:
     hints = typing.get_type_hints(section_type)
     known = {f.name for f in dataclasses.fields(section_type)}
@@ -200,7 +182,10 @@ def _build(section_type: type, values: dict[str, Any], section: str) -> Any:
             raise ConfigError(
                 f"unknown key {key!r} in [{section}]; known keys: {', '.join(sorted(known))}"
             )
-    kwargs = {k: _coerce(v, hints[k], f"[{section}] {k}") for k, v in values.items()}
+    try:
+        kwargs = {k: coerce(v, hints[k], f"[{section}] {k}") for k, v in values.items()}
+    except RecordError as error:
+        raise ConfigError(str(error)) from None
     return section_type(**kwargs)
 
 
@@ -232,13 +217,7 @@ def load_config(path: str | Path) -> ExperimentConfig:
 
 def config_to_dict(config: ExperimentConfig) -> dict[str, Any]:
     """Plain nested dict (tuples as lists): for checkpoints and manifests."""
-
-    def plain(value: Any) -> Any:
-        if isinstance(value, tuple | list):
-            return [plain(v) for v in value]
-        return value
-
     return {
-        section: {k: plain(v) for k, v in dataclasses.asdict(getattr(config, section)).items()}
+        section: to_plain(getattr(config, section))
         for section in ("data", "detector2d", "detector3d", "train", "ssl")
     }

@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from detmatch.constants import TAU_HUNG
 from detmatch.geometry import pairwise_giou_2d
 
-TAU_HUNG = -1.5
 FOCAL_ALPHA = 0.25
 FOCAL_GAMMA = 2.0
 L1_WEIGHT = 5.0

@@ -11,14 +11,10 @@ from enum import IntEnum
 
 import numpy as np
 
+from detmatch.constants import TAU_3D, TAU_HUNG
 from detmatch.geometry import boxes_in_image_mask, project_boxes_to_image
-from detmatch.matching import TAU_HUNG, hungarian_match, matching_cost
+from detmatch.matching import hungarian_match, matching_cost
 from detmatch.structures import Calibration, Detections
-
-# Single-modality confidence thresholds (DESIGN.md section 3): also the 3D fallback outside
-# the camera's view.
-TAU_3D = 0.3
-TAU_2D = 0.7
 
 
 class Provenance(IntEnum):

@@ -72,8 +72,8 @@ def _list(repository: Path) -> int:
         manifest = load_manifest(repository / version)
         marks = ["promoted"] if version in promoted else []
         marks += ["served"] if version == served else []
-        step = manifest.get("training", {}).get("step")
-        print(f"{version}  exported {manifest.get('exported_at')}  step {step}  {' '.join(marks)}")
+        step = manifest.training.step
+        print(f"{version}  exported {manifest.exported_at}  step {step}  {' '.join(marks)}")
     return 0
 
 

@@ -28,6 +28,7 @@ from torch.onnx.operators import shape_as_tensor
 
 from detmatch.models.detector2d import CenterNet2D
 from detmatch.models.detector3d import PointPillars3D
+from serving.manifest import TensorSpec
 from serving.repository import (
     DECODED_OUTPUTS,
     INPUTS_2D,
@@ -169,19 +170,19 @@ def export_detector_3d(
     )
 
 
-def io_spec(path: Path) -> dict[str, list[dict]]:
+def io_spec(path: Path) -> dict[str, tuple[TensorSpec, ...]]:
     """Inputs and outputs of an ONNX file: name, dtype, shape (ints, or names of dynamic
     dimensions)."""
     model = onnx.load(str(path), load_external_data=False)
 
-    def describe(values: list[onnx.ValueInfoProto]) -> list[dict]:
+    def describe(values: list[onnx.ValueInfoProto]) -> tuple[TensorSpec, ...]:
         described = []
         for value in values:
             tensor = value.type.tensor_type
             dims = [d.dim_param if d.dim_param else int(d.dim_value) for d in tensor.shape.dim]
             dtype = np.dtype(onnx.helper.tensor_dtype_to_np_dtype(tensor.elem_type)).name
-            described.append({"name": value.name, "dtype": dtype, "shape": dims})
-        return described
+            described.append(TensorSpec(name=value.name, dtype=dtype, shape=tuple(dims)))
+        return tuple(described)
 
     return {"inputs": describe(model.graph.input), "outputs": describe(model.graph.output)}
 

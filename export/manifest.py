@@ -17,10 +17,25 @@ import torch
 
 import detmatch
 from detmatch.config import ExperimentConfig, config_to_dict
-from detmatch.models.detector2d import IMAGE_MEAN, IMAGE_STD
+from detmatch.constants import IMAGE_MEAN, IMAGE_STD
+from detmatch.files import sha256_file
+from detmatch.models.detector3d import pillar_grid
 from export.graphs import EXPORTER, io_spec, opset_of
 from export.parity import ParityReport
-from serving.repository import MANIFEST_FORMAT, MODEL_2D_FILE, MODEL_3D_FILE, file_record
+from serving.manifest import (
+    MANIFEST_FORMAT,
+    ImagePreprocessing,
+    Manifest,
+    MatchingSpec,
+    Model2DSpec,
+    Model3DSpec,
+    Models,
+    PillarGridSpec,
+    PillarPreprocessing,
+    Postprocessing,
+    TrainingRecord,
+)
+from serving.repository import MODEL_2D_FILE, MODEL_3D_FILE, file_record
 
 
 def tool_versions() -> dict[str, str]:
@@ -44,84 +59,80 @@ def build_manifest(
     checkpoint_file: Path,
     parity: ParityReport,
     exported_at: float,
-) -> dict[str, Any]:
+) -> Manifest:
     """The manifest of the version whose files are in `staging`."""
     detector2d, detector3d = config.detector2d, config.detector3d
     path_2d, path_3d = staging / MODEL_2D_FILE, staging / MODEL_3D_FILE
-    return {
-        "format": MANIFEST_FORMAT,
-        "version": version,
-        "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(exported_at)),
-        "classes": list(config.data.classes),
-        "models": {
-            "detector2d": {
-                "file": MODEL_2D_FILE,
-                "opset": opset_of(path_2d),
+    plain_config = config_to_dict(config)
+    return Manifest(
+        format=MANIFEST_FORMAT,
+        version=version,
+        exported_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(exported_at)),
+        classes=tuple(config.data.classes),
+        models=Models(
+            detector2d=Model2DSpec(
+                file=MODEL_2D_FILE,
+                opset=opset_of(path_2d),
                 **io_spec(path_2d),
-                "preprocessing": {
-                    "in_graph": True,
-                    "input": "the original image: (height, width, 3) uint8 RGB, any size",
-                    "steps": [
+                preprocessing=ImagePreprocessing(
+                    in_graph=True,
+                    input="the original image: (height, width, 3) uint8 RGB, any size",
+                    steps=(
                         "cast to float32 in [0, 255], HWC -> 1CHW",
                         "Resize linear, coordinate_transformation_mode half_pixel, to "
                         "input_size (torch F.interpolate bilinear, align_corners=False, no "
                         "antialias: training's image_to_tensor)",
                         "(x - mean * 255) / (std * 255) per channel",
-                    ],
-                    "input_size": list(config.data.image_size),
-                    "mean": list(IMAGE_MEAN),
-                    "std": list(IMAGE_STD),
-                },
-                "postprocessing": {
-                    "in_graph": "3x3 max-pool peaks, top-k, boxes scaled to the original image",
-                    "boxes": "xyxy pixels of the original image",
-                    "outside_graph": "keep scores > score_threshold",
-                },
-                "max_detections": detector2d.max_detections,
-                "score_threshold": detector2d.score_threshold,
-            },
-            "detector3d": {
-                "file": MODEL_3D_FILE,
-                "opset": opset_of(path_3d),
+                    ),
+                    input_size=tuple(config.data.image_size),
+                    mean=IMAGE_MEAN,
+                    std=IMAGE_STD,
+                ),
+                postprocessing=Postprocessing(
+                    in_graph="3x3 max-pool peaks, top-k, boxes scaled to the original image",
+                    boxes="xyxy pixels of the original image",
+                    outside_graph="keep scores > score_threshold",
+                ),
+                max_detections=detector2d.max_detections,
+                score_threshold=detector2d.score_threshold,
+            ),
+            detector3d=Model3DSpec(
+                file=MODEL_3D_FILE,
+                opset=opset_of(path_3d),
                 **io_spec(path_3d),
-                "preprocessing": {
-                    "in_graph": False,
-                    "input": "LiDAR points: (N, 4) float32 x, y, z, intensity, LiDAR frame",
-                    "function": "detmatch.models.pillars.pillarize(points, grid)",
-                    "grid": {
-                        "point_cloud_range": list(detector3d.point_cloud_range),
-                        "pillar_size": list(detector3d.pillar_size),
-                        "max_points_per_pillar": detector3d.max_points_per_pillar,
-                        "max_pillars": detector3d.max_pillars,
-                    },
-                },
-                "postprocessing": {
-                    "in_graph": "3x3 max-pool peaks, top-k, box regression decoded",
-                    "boxes": "LiDAR frame x y z l w h yaw, gravity centre, metres / radians",
-                    "outside_graph": "keep scores > score_threshold",
-                },
-                "max_detections": detector3d.max_detections,
-                "score_threshold": detector3d.score_threshold,
-            },
-        },
-        "matching": {
-            "tau_hung": config.ssl.tau_hung,
-            # The field-of-view fallback: confident 3D boxes outside the image (null: off).
-            "tau_3d_outside_view": config.ssl.tau_3d if config.ssl.fov_fallback else None,
-            "function": "detmatch.pseudo_labels.match_detections",
-        },
-        "training": {
-            "checkpoint": str(checkpoint_file.resolve()),
-            "checkpoint_sha256": file_record(checkpoint_file)["sha256"],
-            "step": int(checkpoint.get("step", -1)),
-            "data": config_to_dict(config)["data"],
-            "config": config_to_dict(config),
-            "metrics": _json_safe(checkpoint.get("metrics", {})),
-        },
-        "parity": _json_safe(parity.to_json()),
-        "tools": tool_versions(),
-        "files": {name: file_record(staging / name) for name in (MODEL_2D_FILE, MODEL_3D_FILE)},
-    }
+                preprocessing=PillarPreprocessing(
+                    in_graph=False,
+                    input="LiDAR points: (N, 4) float32 x, y, z, intensity, LiDAR frame",
+                    function="detmatch.models.pillars.pillarize(points, grid)",
+                    grid=PillarGridSpec.of(pillar_grid(detector3d)),
+                ),
+                postprocessing=Postprocessing(
+                    in_graph="3x3 max-pool peaks, top-k, box regression decoded",
+                    boxes="LiDAR frame x y z l w h yaw, gravity centre, metres / radians",
+                    outside_graph="keep scores > score_threshold",
+                ),
+                max_detections=detector3d.max_detections,
+                score_threshold=detector3d.score_threshold,
+            ),
+        ),
+        matching=MatchingSpec(
+            tau_hung=config.ssl.tau_hung,
+            # The field-of-view fallback: confident 3D boxes outside the image (None: off).
+            tau_3d_outside_view=config.ssl.tau_3d if config.ssl.fov_fallback else None,
+            function="detmatch.pseudo_labels.match_detections",
+        ),
+        training=TrainingRecord(
+            checkpoint=str(checkpoint_file.resolve()),
+            checkpoint_sha256=sha256_file(checkpoint_file),
+            step=int(checkpoint.get("step", -1)),
+            data=plain_config["data"],
+            config=plain_config,
+            metrics=_json_safe(checkpoint.get("metrics", {})),
+        ),
+        parity=_json_safe(parity.to_json()),
+        tools=tool_versions(),
+        files={name: file_record(staging / name) for name in (MODEL_2D_FILE, MODEL_3D_FILE)},
+    )
 
 
 def _json_safe(value: Any) -> Any:

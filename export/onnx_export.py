@@ -27,7 +27,6 @@ from export.graphs import export_detector_2d, export_detector_3d
 from export.manifest import build_manifest
 from export.parity import ParityError, ParityReport, Tolerance, check_parity, load_parity_frames
 from serving.repository import (
-    MANIFEST_FILE,
     MODEL_2D_FILE,
     MODEL_3D_FILE,
     RepositoryError,
@@ -35,7 +34,6 @@ from serving.repository import (
     promote,
     publish,
     staging_directory,
-    write_json,
 )
 from serving.sessions import SessionSettings, make_session
 
@@ -109,10 +107,9 @@ def export_checkpoint(
         log(f"parity: {report.summary()}")
 
         def write_manifest(name: str) -> None:
-            manifest = build_manifest(
-                name, staging, config, state, checkpoint_file, report, started
+            build_manifest(name, staging, config, state, checkpoint_file, report, started).save(
+                staging
             )
-            write_json(staging / MANIFEST_FILE, manifest)
 
         name, path = publish(repository, staging, version, finalize=write_manifest)
     log(f"published version {name} at {path}")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid, pillarize
+from detmatch.models.pillars import PILLAR_FEATURES, pillarize
 from detmatch.pseudo_labels import MatchedLabels, match_detections
 from detmatch.structures import Calibration, Detections
 from serving.repository import (
@@ -82,28 +82,17 @@ class Labeler:
         self.manifest = load_manifest(self.path)
         if check_files:
             verify_checksums(self.path, self.manifest)
-        try:
-            self.version: str = str(self.manifest["version"])
-            self.classes: tuple[str, ...] = tuple(self.manifest["classes"])
-            spec_2d = self.manifest["models"]["detector2d"]
-            spec_3d = self.manifest["models"]["detector3d"]
-            grid = spec_3d["preprocessing"]["grid"]
-            self.grid = PillarGrid(
-                tuple(float(v) for v in grid["point_cloud_range"]),
-                tuple(float(v) for v in grid["pillar_size"]),
-                int(grid["max_points_per_pillar"]),
-                int(grid["max_pillars"]),
-            )
-            self.score_threshold_2d = float(spec_2d["score_threshold"])
-            self.score_threshold_3d = float(spec_3d["score_threshold"])
-            self.tau_hung = float(self.manifest["matching"]["tau_hung"])
-            tau_outside = self.manifest["matching"]["tau_3d_outside_view"]
-            self.tau_3d_outside_view = None if tau_outside is None else float(tau_outside)
-        except (KeyError, TypeError, ValueError) as error:
-            raise RepositoryError(f"{self.path}: unusable manifest: {error!r}") from None
+        spec_2d, spec_3d = self.manifest.model_2d, self.manifest.model_3d
+        self.version: str = self.manifest.version
+        self.classes: tuple[str, ...] = self.manifest.classes
+        self.grid = spec_3d.preprocessing.grid.grid()
+        self.score_threshold_2d = spec_2d.score_threshold
+        self.score_threshold_3d = spec_3d.score_threshold
+        self.tau_hung = self.manifest.matching.tau_hung
+        self.tau_3d_outside_view = self.manifest.matching.tau_3d_outside_view
         self.settings = settings or SessionSettings()
-        self.session_2d = make_session(self.path / spec_2d["file"], self.settings)
-        self.session_3d = make_session(self.path / spec_3d["file"], self.settings)
+        self.session_2d = make_session(self.path / spec_2d.file, self.settings)
+        self.session_3d = make_session(self.path / spec_3d.file, self.settings)
         for session, inputs, name in (
             (self.session_2d, INPUTS_2D, "detector2d"),
             (self.session_3d, INPUTS_3D, "detector3d"),

@@ -16,74 +16,17 @@ atomically, so an interrupted run leaves whole files.
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from tqdm import tqdm
 
-from detmatch.data.kitti import KittiDataset, KittiObjects, atomic_write_bytes, write_objects
-from detmatch.data.results import result_objects_2d, result_objects_3d
-from detmatch.pseudo_labels import Provenance
-from detmatch.structures import Calibration
-from serving.labeler import FrameLabels, Labeler
-
-PROVENANCE_NAMES = {
-    Provenance.MATCHED: "matched",
-    Provenance.LIDAR_ONLY_OUTSIDE_VIEW: "lidar_only_outside_view",
-}
-
-
-def labels_to_objects_3d(result: FrameLabels, calib: Calibration) -> KittiObjects:
-    """Labels whose 3D box centre projects into the image -> KITTI result rows (camera-frame
-    box, projected 2D box, alpha; the 3D class and score)."""
-    labels = result.labels
-    names = [result.classes[c] for c in labels.class_3d]
-    return result_objects_3d(labels.boxes_3d, names, labels.score_3d, calib, result.image_size)
-
-
-def labels_to_objects_2d(result: FrameLabels) -> KittiObjects:
-    """Matched labels' 2D boxes -> KITTI result rows with KITTI's placeholder 3D fields."""
-    labels = result.labels
-    keep = labels.matched
-    names = [result.classes[c] for c in labels.class_2d[keep]]
-    return result_objects_2d(labels.boxes_2d[keep], names, labels.score_2d[keep])
-
-
-def labels_to_json(frame_id: str, result: FrameLabels) -> dict[str, Any]:
-    """Every label of a frame, JSON-ready (NaN fields of absent boxes become null)."""
-    labels = result.labels
-
-    def number(value: float) -> float | None:
-        return None if not math.isfinite(value) else round(float(value), 6)
-
-    rows = []
-    for i in range(len(labels)):
-        matched = labels.provenance[i] == Provenance.MATCHED
-        rows.append(
-            {
-                "provenance": PROVENANCE_NAMES[Provenance(int(labels.provenance[i]))],
-                "class_3d": result.classes[labels.class_3d[i]],
-                "class_2d": result.classes[labels.class_2d[i]] if matched else None,
-                "box_3d": [number(v) for v in labels.boxes_3d[i]],
-                "box_2d": [number(v) for v in labels.boxes_2d[i]] if matched else None,
-                "score_3d": number(labels.score_3d[i]),
-                "score_2d": number(labels.score_2d[i]),
-                "cost": number(labels.cost[i]),
-            }
-        )
-    return {
-        "frame_id": frame_id,
-        "model_version": result.model_version,
-        "image_size": list(result.image_size),
-        "thresholds": result.thresholds,
-        "box_3d": "LiDAR frame x y z l w h yaw, gravity centre",
-        "box_2d": "x1 y1 x2 y2 pixels",
-        "labels": rows,
-    }
+from detmatch.data.kitti import KittiDataset, write_objects
+from detmatch.files import atomic_write_bytes
+from serving.labeler import Labeler
+from serving.serialize import labels_to_json, labels_to_objects_2d, labels_to_objects_3d
 
 
 @dataclass(frozen=True)

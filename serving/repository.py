@@ -13,36 +13,30 @@ fsynced staging directory, so a reader sees a complete version or none; versions
 modified afterwards, except for the PROMOTED marker. The served version is the newest version
 carrying the marker; removing the marker from a bad version rolls back to the previous one.
 
-No torch: the server and the exporter share it. Files are written with `detmatch.data.kitti`'s
+No torch: the server and the exporter share it. Files are written with `detmatch.files`'
 atomic writer (temporary file, fsync, rename, directory fsync).
 """
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
-import re
 import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
-from detmatch.data.kitti import atomic_write_bytes, fsync_path
+from detmatch.files import atomic_write_bytes, fsync_path, sha256_file
+from serving.manifest import VERSION_PATTERN, FileRecord, Manifest, ManifestError
 
-MANIFEST_FORMAT = 1
-MANIFEST_FILE = "manifest.json"
 PROMOTED_FILE = "PROMOTED"
 MODEL_2D_FILE = "detector2d.onnx"
 MODEL_3D_FILE = "detector3d.onnx"
 STAGING_PREFIX = ".staging-"
 # A staging directory this old belongs to an export that was killed.
 STALE_STAGING_SECONDS = 24 * 3600
-
-VERSION_PATTERN = re.compile(r"^[0-9]{6,}$")
 
 # Graph input and output names: the contract between the exporter and the labeler.
 INPUTS_2D = ("image",)
@@ -117,50 +111,29 @@ def demote(root: str | os.PathLike, version: str | int) -> str:
     return path.name
 
 
-def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
-    """Read and check the manifest of a version directory."""
-    manifest_path = Path(path) / MANIFEST_FILE
-    if not manifest_path.is_file():
-        raise RepositoryError(f"{path} has no {MANIFEST_FILE}")
+def load_manifest(path: str | os.PathLike) -> Manifest:
+    """Read and validate the manifest of a version directory (RepositoryError naming the field
+    when it cannot be used)."""
     try:
-        manifest = json.loads(manifest_path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise RepositoryError(f"{manifest_path}: not valid JSON: {error}") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
-        got = manifest.get("format") if isinstance(manifest, dict) else None
-        raise RepositoryError(
-            f"{manifest_path}: manifest format {got!r}, this reader knows {MANIFEST_FORMAT}"
-        )
-    for key in ("version", "classes", "models", "matching", "files"):
-        if key not in manifest:
-            raise RepositoryError(f"{manifest_path}: missing {key!r}")
-    return manifest
+        return Manifest.load(path)
+    except ManifestError as error:
+        raise RepositoryError(str(error)) from None
 
 
-def sha256_file(path: str | os.PathLike) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+def file_record(path: str | os.PathLike) -> FileRecord:
+    """A file's SHA-256 and size, as the manifest lists it."""
+    return FileRecord(sha256=sha256_file(path), bytes=Path(path).stat().st_size)
 
 
-def file_record(path: str | os.PathLike) -> dict[str, Any]:
-    """{'sha256': hex digest, 'bytes': size} of a file, as the manifest lists it."""
-    return {"sha256": sha256_file(path), "bytes": Path(path).stat().st_size}
-
-
-def verify_checksums(path: str | os.PathLike, manifest: dict[str, Any] | None = None) -> None:
+def verify_checksums(path: str | os.PathLike, manifest: Manifest | None = None) -> None:
     """Check every file the manifest lists against its size and SHA-256."""
     path = Path(path)
     manifest = load_manifest(path) if manifest is None else manifest
-    for name, expected in manifest["files"].items():
-        if Path(name).name != name:
-            raise RepositoryError(f"{path / MANIFEST_FILE}: file name {name!r} is not plain")
+    for name, expected in manifest.files.items():
         file = path / name
         if not file.is_file():
             raise RepositoryError(f"{file} is listed in the manifest but missing")
-        if file.stat().st_size != expected["bytes"] or sha256_file(file) != expected["sha256"]:
+        if file.stat().st_size != expected.bytes or sha256_file(file) != expected.sha256:
             raise RepositoryError(f"{file} does not match its checksum in the manifest")
 
 
@@ -233,12 +206,6 @@ def publish(
         fsync_path(root)
         return name, target
     raise RepositoryError(f"could not find a free version number in {root}")
-
-
-def write_json(path: Path, value: Any) -> None:
-    atomic_write_bytes(
-        path, (json.dumps(value, indent=2, sort_keys=False) + "\n").encode(), durable=True
-    )
 
 
 def _utc_now() -> str:

@@ -24,6 +24,7 @@ from grpc_reflection.v1alpha import reflection
 from serving.errors import status_for
 from serving.metrics import ServiceMetrics
 from serving.proto import load as load_stubs
+from serving.serialize import BOX_2D_FIELDS, BOX_3D_FIELDS, label_records
 from serving.service import LabelingService, LabelOptions, LabelResult, ModelSlot
 from serving.store import LabelStore
 from serving.watcher import RepositoryWatcher
@@ -253,36 +254,25 @@ def _optional(message, name: str) -> float | None:
     return getattr(message, name) if message.HasField(name) else None
 
 
-BOX_3D_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
-BOX_2D_FIELDS = ("x1", "y1", "x2", "y2")
-
-
-def _fields(names: tuple[str, ...], values) -> dict[str, float]:
-    return {name: float(v) for name, v in zip(names, values, strict=True)}
-
-
 def _response(result: LabelResult):
-    frame = result.result
-    labels = frame.labels
     rows = []
-    for i in range(len(labels)):
-        matched = bool(labels.matched[i])
+    for record in label_records(result.result):
         row = pb2.Label(
-            class_name=frame.classes[labels.class_3d[i]],
-            box_3d=pb2.Box3D(**_fields(BOX_3D_FIELDS, labels.boxes_3d[i])),
-            score_3d=float(labels.score_3d[i]),
-            provenance=int(labels.provenance[i]),
+            class_name=record.class_3d,
+            box_3d=pb2.Box3D(**dict(zip(BOX_3D_FIELDS, record.box_3d, strict=True))),
+            score_3d=record.score_3d,
+            provenance=int(record.provenance),
         )
-        if matched:
-            row.class_name_2d = frame.classes[labels.class_2d[i]]
-            row.box_2d.CopyFrom(pb2.Box2D(**_fields(BOX_2D_FIELDS, labels.boxes_2d[i])))
-            row.score_2d = float(labels.score_2d[i])
-            row.match_cost = float(labels.cost[i])
+        if record.box_2d is not None:
+            row.class_name_2d = record.class_2d
+            row.box_2d.CopyFrom(pb2.Box2D(**dict(zip(BOX_2D_FIELDS, record.box_2d, strict=True))))
+            row.score_2d = record.score_2d
+            row.match_cost = record.cost
         rows.append(row)
     t = result.timings
     return pb2.LabelFrameResponse(
         frame_id=result.frame_id,
-        model_version=frame.model_version,
+        model_version=result.result.model_version,
         labels=rows,
         stored=result.stored is not None,
         timing=pb2.Timing(

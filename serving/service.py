@@ -129,7 +129,7 @@ class LabelingService:
             "score_threshold_3d": labeler.score_threshold_3d,
             "tau_hung": labeler.tau_hung,
             "tau_3d_outside_view": labeler.tau_3d_outside_view,
-            "metrics": labeler.manifest.get("training", {}).get("metrics", {}),
+            "metrics": labeler.manifest.training.metrics,
         }
 
 

@@ -29,18 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from detmatch.data.kitti import (
-    atomic_write_bytes,
-    format_objects,
-    fsync_path,
-    validate_frame_id,
-    write_calib,
-    write_image_set,
-)
+from detmatch.data.kitti import format_objects, validate_frame_id, write_calib, write_image_set
+from detmatch.files import atomic_write_bytes, fsync_path
 from detmatch.structures import Calibration
 from serving.errors import StoreError
 from serving.labeler import FrameLabels
-from serving.offline import labels_to_json, labels_to_objects_3d
+from serving.serialize import label_records, labels_to_json, labels_to_objects_3d
 
 SHARDS_DIR = "shards"
 SELECT_FRAME = "SELECT * FROM frames WHERE frame_id = ?"
@@ -115,7 +109,7 @@ class LabelStore:
                 return _record(row, self.shard), False
             try:
                 files = self._write_files(frame_id, image_png, points, calib, result)
-                provenance = [r["provenance"] for r in labels_to_json(frame_id, result)["labels"]]
+                provenance = [r.provenance_name for r in label_records(result)]
                 matched = int(result.labels.matched.sum())
                 values = (
                     frame_id,

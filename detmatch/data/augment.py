@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from detmatch.constants import IMAGE_MEAN, IMAGE_STD
 from detmatch.geometry import limit_period
 
 
@@ -207,8 +208,8 @@ def strong_photometric(image: torch.Tensor, rng: np.random.Generator) -> torch.T
     if rng.random() < 0.5:
         x = gaussian_blur(x, float(rng.uniform(0.1, 2.0)))
     x = x * 255.0
-    mean = torch.tensor([123.675, 116.28, 103.53]).view(3, 1, 1)
-    std = torch.tensor([58.395, 57.12, 57.375]).view(3, 1, 1)
+    mean = torch.tensor([255.0 * m for m in IMAGE_MEAN]).view(3, 1, 1)
+    std = torch.tensor([255.0 * s for s in IMAGE_STD]).view(3, 1, 1)
     normalised = (x - mean) / std
     for probability, area, ratio in ERASINGS:
         if rng.random() < probability:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from detmatch.files import atomic_write_bytes
 from detmatch.geometry import kitti_camera_to_lidar_boxes, lidar_to_kitti_camera_boxes
 from detmatch.structures import Boxes2D, Boxes3D, Calibration, Frame, Labels
 
@@ -343,37 +343,6 @@ def write_image_set(path: str | os.PathLike, ids: list[str]) -> None:
     for frame_id in ids:
         validate_frame_id(frame_id)
     atomic_write_bytes(path, "".join(f"{i}\n" for i in ids).encode())
-
-
-def fsync_path(path: str | os.PathLike) -> None:
-    """fsync a file, or a directory (which makes the renames inside it durable)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = False) -> None:
-    """Write to a temporary file in the same directory, then rename: no reader sees half a file.
-    The file gets mode 0644 like an ordinary file. With durable, the data is fsynced before the
-    rename and the directory after it (the file survives a power cut)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o644)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            if durable:
-                handle.flush()
-                os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    if durable:
-        fsync_path(path.parent)
 
 
 def _read_text(path: str | os.PathLike) -> str:

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from detmatch.data.kitti import KittiObjects, atomic_write_bytes, objects_to_labels
+from detmatch.data.kitti import KittiObjects, objects_to_labels
+from detmatch.files import atomic_write_bytes
 from detmatch.geometry import bev_corners, lidar_to_image
 from detmatch.structures import Frame, Labels
 

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from detmatch.config import Detector2DConfig
+from detmatch.constants import IMAGE_MEAN, IMAGE_STD
 from detmatch.models.common import (
     HEATMAP_PRIOR_BIAS,
     draw_gaussian,
@@ -26,9 +27,6 @@ from detmatch.models.common import (
     stage,
     tensor_like,
 )
-
-IMAGE_MEAN = (0.485, 0.456, 0.406)
-IMAGE_STD = (0.229, 0.224, 0.225)
 
 
 class CenterNet2D(nn.Module):

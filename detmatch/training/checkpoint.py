@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from detmatch.data.kitti import atomic_write_bytes
+from detmatch.files import atomic_write_bytes
 
 CHECKPOINT_PATTERN = re.compile(r"^step_(\d{8})\.pt$")
 

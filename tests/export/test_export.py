@@ -1,4 +1,4 @@
-import json
+import dataclasses
 import re
 
 import numpy as np
@@ -10,6 +10,7 @@ from detmatch.training.predict import load_detectors
 from export.cli import main as export_main
 from export.onnx_export import export_checkpoint
 from export.parity import ParityError, PeakTies, Tolerance, check_parity, compare_decoded
+from serving.manifest import FileRecord, PillarGridSpec, TensorSpec
 from serving.repository import (
     MODEL_2D_FILE,
     MODEL_3D_FILE,
@@ -38,37 +39,32 @@ def test_manifest_describes_models_thresholds_training_and_files(exported_reposi
     version = exported_repository / "000001"
     manifest = load_manifest(version)
     verify_checksums(version, manifest)
-    assert manifest["version"] == "000001"
-    assert manifest["classes"] == ["Car", "Pedestrian", "Cyclist"]
-    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", manifest["exported_at"])
-    spec_2d, spec_3d = manifest["models"]["detector2d"], manifest["models"]["detector3d"]
-    assert spec_2d["inputs"] == [
-        {"name": "image", "dtype": "uint8", "shape": ["height", "width", 3]}
-    ]
-    assert [i["name"] for i in spec_3d["inputs"]] == ["features", "coords", "num_points"]
-    assert spec_3d["inputs"][0]["shape"] == ["pillars", 8, 9]
-    assert spec_2d["outputs"][0] == {"name": "boxes", "dtype": "float32", "shape": [30, 4]}
-    assert spec_3d["outputs"][0] == {"name": "boxes", "dtype": "float32", "shape": [30, 7]}
-    assert spec_2d["preprocessing"]["in_graph"] and spec_2d["preprocessing"]["input_size"] == [
-        320,
-        96,
-    ]
-    assert spec_3d["preprocessing"]["grid"] == {
-        "point_cloud_range": [0.0, -25.6, -3.0, 51.2, 25.6, 1.0],
-        "pillar_size": [0.4, 0.4],
-        "max_points_per_pillar": 8,
-        "max_pillars": 6000,
-    }
-    assert spec_2d["score_threshold"] == spec_3d["score_threshold"] == 0.1
-    assert manifest["matching"]["tau_hung"] == -1.5
-    assert manifest["matching"]["tau_3d_outside_view"] == 0.3
-    training = manifest["training"]
-    assert training["step"] == 6 and training["data"]["classes"] == manifest["classes"]
-    assert len(training["checkpoint_sha256"]) == 64
-    assert "mAP" in training["metrics"]["3d"]
-    assert set(manifest["files"]) == {MODEL_2D_FILE, MODEL_3D_FILE}
-    assert {"torch", "onnx", "onnxruntime", "numpy", "exporter"} <= set(manifest["tools"])
-    parity = manifest["parity"]
+    assert manifest.version == "000001"
+    assert manifest.classes == ("Car", "Pedestrian", "Cyclist")
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", manifest.exported_at)
+    spec_2d, spec_3d = manifest.model_2d, manifest.model_3d
+    assert spec_2d.inputs == (TensorSpec("image", "uint8", ("height", "width", 3)),)
+    assert [i.name for i in spec_3d.inputs] == ["features", "coords", "num_points"]
+    assert spec_3d.inputs[0].shape == ("pillars", 8, 9)
+    assert spec_2d.outputs[0] == TensorSpec("boxes", "float32", (30, 4))
+    assert spec_3d.outputs[0] == TensorSpec("boxes", "float32", (30, 7))
+    assert spec_2d.preprocessing.in_graph and spec_2d.preprocessing.input_size == (320, 96)
+    assert spec_3d.preprocessing.grid == PillarGridSpec(
+        point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 1.0),
+        pillar_size=(0.4, 0.4),
+        max_points_per_pillar=8,
+        max_pillars=6000,
+    )
+    assert spec_2d.score_threshold == spec_3d.score_threshold == 0.1
+    assert manifest.matching.tau_hung == -1.5
+    assert manifest.matching.tau_3d_outside_view == 0.3
+    training = manifest.training
+    assert training.step == 6 and tuple(training.data["classes"]) == manifest.classes
+    assert len(training.checkpoint_sha256) == 64
+    assert "mAP" in training.metrics["3d"]
+    assert set(manifest.files) == {MODEL_2D_FILE, MODEL_3D_FILE}
+    assert {"torch", "onnx", "onnxruntime", "numpy", "exporter"} <= set(manifest.tools)
+    parity = manifest.parity
     assert parity["passed"] and parity["rtol"] == 1e-4 and parity["atol"] == 1e-3
     sources = {f["source"] for f in parity["frames"]}
     assert str(KITTI_SAMPLE) in sources and any(s.startswith("synthetic") for s in sources)
@@ -203,7 +199,7 @@ def test_cli_exports_next_version_lists_promotes_and_demotes(
     assert "published (not promoted) version 000002" in capsys.readouterr().out
     assert list_versions(repository) == ["000001", "000002"]
     assert served_version(repository) == "000001"
-    assert load_manifest(repository / "000002")["version"] == "000002"
+    assert load_manifest(repository / "000002").version == "000002"
     # An explicit version that exists is refused before any work.
     assert export_main([*args, "--version", "2"]) == 2
     assert "already exists" in capsys.readouterr().err
@@ -217,8 +213,8 @@ def test_cli_exports_next_version_lists_promotes_and_demotes(
     assert export_main(["--repository", str(repository), "--promote", "7"]) == 2
     with pytest.raises(SystemExit):
         export_main(["--repository", str(repository)])
-    manifest = json.loads((repository / "000002" / "manifest.json").read_text())
-    assert manifest["parity"]["frames"][0]["source"] == str(synth_root)
+    manifest = load_manifest(repository / "000002")
+    assert manifest.parity["frames"][0]["source"] == str(synth_root)
+    wrong = {**manifest.files, MODEL_2D_FILE: FileRecord(sha256="0" * 64, bytes=1)}
     with pytest.raises(RepositoryError):
-        verify_checksums(repository / "000002", {**manifest, "files": {
-            MODEL_2D_FILE: {"sha256": "0" * 64, "bytes": 1}}})  # fmt: skip
+        verify_checksums(repository / "000002", dataclasses.replace(manifest, files=wrong))

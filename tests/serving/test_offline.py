@@ -7,7 +7,7 @@ from detmatch.data.kitti import KittiDataset, read_image_set, read_objects
 from detmatch.inference import detections_2d_to_objects, detections_3d_to_objects
 from detmatch.structures import Detections
 from serving.labeler import Labeler
-from serving.offline import labels_to_objects_2d, labels_to_objects_3d
+from serving.serialize import labels_to_objects_2d, labels_to_objects_3d
 
 
 def test_detmatch_label_writes_kitti_results_that_detmatch_eval_scores(

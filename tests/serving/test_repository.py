@@ -3,8 +3,8 @@ import os
 
 import pytest
 
+from serving.manifest import Manifest, ManifestError
 from serving.repository import (
-    MANIFEST_FORMAT,
     RepositoryError,
     demote,
     file_record,
@@ -19,6 +19,7 @@ from serving.repository import (
     staging_directory,
     verify_checksums,
 )
+from tests.manifests import minimal_manifest
 
 
 def _publish(root, payload=b"model", version=None):
@@ -27,10 +28,9 @@ def _publish(root, payload=b"model", version=None):
         (staging / "model.onnx").write_bytes(payload)
 
         def manifest(name):
-            record = {"format": MANIFEST_FORMAT, "version": name, "classes": ["Car"],
-                      "models": {}, "matching": {}, "files": {
-                          "model.onnx": file_record(staging / "model.onnx")}}  # fmt: skip
-            (staging / "manifest.json").write_text(json.dumps(record))
+            minimal_manifest(name, {"model.onnx": file_record(staging / "model.onnx")}).save(
+                staging
+            )
 
         return publish(root, staging, version, finalize=manifest)
 
@@ -48,7 +48,7 @@ def test_versions_are_numbered_ordered_and_immutable(tmp_path):
     with pytest.raises(RepositoryError, match="already exists"):
         _publish(root, version="000010")
     assert sorted(p.name for p in root.iterdir() if p.name.startswith(".")) == [".staging-killed"]
-    assert load_manifest(root / "000010")["version"] == "000010"
+    assert load_manifest(root / "000010").version == "000010"
     verify_checksums(root / "000010")
     assert parse_version("7") == parse_version(7) == "000007"
     for bad in ("-1", "v2", "0", "1.5"):
@@ -103,3 +103,35 @@ def test_a_failed_staging_leaves_nothing_and_stale_staging_is_swept(tmp_path):
     with staging_directory(root):
         pass
     assert list(root.iterdir()) == []
+
+
+def test_the_manifest_round_trips_and_its_errors_name_the_field(tmp_path):
+    root = tmp_path / "models"
+    _, path = _publish(root)
+    manifest = load_manifest(path)
+    manifest.save(tmp_path)
+    assert load_manifest(tmp_path) == manifest
+    data = json.loads((path / "manifest.json").read_text())
+    data["models"]["detector3d"]["preprocessing"]["grid"]["pillar_size"] = [0.5, 0.5, 0.5]
+    with pytest.raises(
+        ManifestError, match=r"models\.detector3d\.preprocessing\.grid\.pillar_size"
+    ):
+        Manifest.from_json(data)
+    data = json.loads((path / "manifest.json").read_text())
+    data["matching"]["tau_3d_outside_view"] = 1.5
+    with pytest.raises(ManifestError, match=r"matching: tau_3d_outside_view must be in \[0, 1\)"):
+        Manifest.from_json(data)
+    del data["matching"]["function"]
+    with pytest.raises(ManifestError, match="missing field 'function'"):
+        Manifest.from_json(data)
+    data = json.loads((path / "manifest.json").read_text())
+    data["files"]["../escape.onnx"] = data["files"]["model.onnx"]
+    with pytest.raises(ManifestError, match="is not plain"):
+        Manifest.from_json(data)
+    data = json.loads((path / "manifest.json").read_text())
+    data["models"]["detector2d"]["max_detections"] = 2.5
+    with pytest.raises(ManifestError, match=r"models\.detector2d\.max_detections must be int"):
+        Manifest.from_json(data)
+    (path / "manifest.json").write_text(json.dumps({**data, "extra": 1}))
+    with pytest.raises(RepositoryError, match="unknown field 'extra'"):
+        load_manifest(path)

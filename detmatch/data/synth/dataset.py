@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from detmatch.data.kitti import atomic_write_bytes, write_frame, write_image_set
+from detmatch.data.kitti import write_frame, write_image_set
 from detmatch.data.synth.camera import Visibility, render_camera
 from detmatch.data.synth.labels import make_labels
 from detmatch.data.synth.layout import sample_scene
@@ -23,6 +23,7 @@ from detmatch.data.synth.lidar import lidar_sweep
 from detmatch.data.synth.scene import Scene
 from detmatch.data.synth.sensors import RESOLUTIONS, make_camera, make_lidar
 from detmatch.data.synth.textures import NoiseTiles
+from detmatch.files import atomic_write_bytes
 from detmatch.structures import Frame
 
 GENERATOR_VERSION = "1.0"

@@ -1,0 +1,19 @@
+"""The method's constants (DESIGN.md section 3), defined once.
+
+The config's defaults, the matching, the pseudo-label rules, the 2D detector's normalisation,
+the photometric augmentation and the exported manifest all read them from here. No imports:
+the torch-free service uses them too.
+"""
+
+# Hungarian matching: assigned 2D-3D pairs with cost <= TAU_HUNG become pseudo-labels.
+TAU_HUNG = -1.5
+# Single-modality confidence thresholding (also the 3D fallback outside the camera's view).
+TAU_3D = 0.3
+TAU_2D = 0.7
+# A teacher's own decoding keeps boxes whose max class probability exceeds this.
+SCORE_THRESHOLD = 0.1
+
+# The 2D detector's input normalisation, per RGB channel, for images in [0, 1]
+# (ImageNet's statistics; multiply by 255 for [0, 255] pixels).
+IMAGE_MEAN = (0.485, 0.456, 0.406)
+IMAGE_STD = (0.229, 0.224, 0.225)
