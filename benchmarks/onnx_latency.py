@@ -79,19 +79,19 @@ def _load_frame(path: str):
 def torch_worker(args: argparse.Namespace) -> dict:
     import torch
 
-    from detmatch.models.detector3d import pillar_grid
+    from detmatch.models.build import load_detectors
     from detmatch.models.pillars import pillarize
-    from detmatch.training.predict import load_detectors
     from export.graphs import ImageDetector2DGraph, PillarDetector3DGraph
 
     torch.set_num_threads(args.threads)
     image, points, _ = _load_frame(args.frame)
-    config, model_2d, model_3d, _ = load_detectors(Path(args.checkpoint))
+    loaded = load_detectors(Path(args.checkpoint))
+    config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
     baseline = _peak_rss_mib()
     graph_2d = ImageDetector2DGraph(model_2d, config.data.image_size).eval()
     graph_3d = PillarDetector3DGraph(model_3d).eval()
     image_tensor = torch.from_numpy(image.copy())
-    pillars = tuple(torch.from_numpy(a) for a in pillarize(points, pillar_grid(config.detector3d)))
+    pillars = tuple(torch.from_numpy(a) for a in pillarize(points, model_3d.grid).arrays)
     with torch.inference_mode():
         detector_2d = _timed(lambda: graph_2d(image_tensor), args.repeats)
         detector_3d = _timed(lambda: graph_3d(*pillars), args.repeats)
@@ -107,7 +107,7 @@ def torch_worker(args: argparse.Namespace) -> dict:
 def ort_worker(args: argparse.Namespace) -> dict:
     sys.modules["torch"] = None  # the labeler's side must not need it
     from serving.labeler import Labeler
-    from serving.repository import DECODED_OUTPUTS, MODEL_2D_FILE, MODEL_3D_FILE
+    from serving.repository import DECODED_OUTPUTS, INPUTS_3D, MODEL_2D_FILE, MODEL_3D_FILE
     from serving.sessions import SessionSettings, make_session
 
     image, points, calib = _load_frame(args.frame)
@@ -115,8 +115,7 @@ def ort_worker(args: argparse.Namespace) -> dict:
     baseline = _peak_rss_mib()
     from detmatch.models.pillars import pillarize
 
-    features, coords, num_points = pillarize(points, labeler.grid)
-    feed_3d = {"features": features, "coords": coords, "num_points": num_points}
+    feed_3d = dict(zip(INPUTS_3D, pillarize(points, labeler.grid).arrays, strict=True))
     outputs = list(DECODED_OUTPUTS)
     feed_2d = {"image": image}
     detector_2d = _timed(partial(labeler.session_2d.run, outputs, feed_2d), args.repeats)
@@ -165,21 +164,20 @@ def prepare(config_path: Path, work: Path, frame_path: Path) -> tuple[Path, Path
     import torch
 
     from detmatch.config import config_to_dict, load_config
-    from detmatch.models.detector2d import CenterNet2D
-    from detmatch.models.detector3d import PointPillars3D
+    from detmatch.models.build import build_detectors
     from export.onnx_export import export_checkpoint
 
     config = load_config(config_path)
     torch.manual_seed(0)
-    classes = len(config.data.classes)
+    model_2d, model_3d = build_detectors(config)
     checkpoint = work / f"{config_path.stem}.pt"
     torch.save(
         {
             "format": 1,
             "step": 0,
             "config": config_to_dict(config),
-            "model_2d": CenterNet2D(config.detector2d, classes).state_dict(),
-            "model_3d": PointPillars3D(config.detector3d, classes).state_dict(),
+            "model_2d": model_2d.state_dict(),
+            "model_3d": model_3d.state_dict(),
             "metrics": {},
         },
         checkpoint,

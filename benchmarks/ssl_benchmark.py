@@ -30,19 +30,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from detmatch.checkpoints import list_checkpoints
 from detmatch.config import DEVICES, ExperimentConfig, load_config
 from detmatch.data.dataset import FrameDataset, collate
 from detmatch.eval.pseudo_labels import pseudo_label_quality
-from detmatch.geometry import pairwise_iou_3d, project_boxes_to_image
+from detmatch.geometry import boxes_touching_image, pairwise_iou_3d, project_boxes_to_image
 from detmatch.inference import predict_batch
 from detmatch.matching import matching_cost
-from detmatch.models.detector3d import pillar_grid
-from detmatch.pseudo_labels import camera_view_mask, confident_detections, match_detections
+from detmatch.models.build import build_detectors, load_detectors
+from detmatch.pseudo_labels import confident_detections, match_detections
 from detmatch.structures import Boxes2D, Boxes3D, Detections, Labels
-from detmatch.training.checkpoint import list_checkpoints
 from detmatch.training.distributed import DistributedContext, init_distributed
 from detmatch.training.evaluation import evaluate_detectors
-from detmatch.training.predict import load_detectors
 from detmatch.training.semi_supervised import SemiSupervisedTrainer
 from detmatch.training.trainer import SupervisedTrainer
 
@@ -102,7 +101,7 @@ def pseudo_label_sets(
     zero 2D boxes and 2D rows zero 3D boxes, so each counts for its own modality only."""
     ssl = config.ssl
     size = sample.image_transform.original_size
-    in_view = camera_view_mask(det_3d.boxes, sample.calib, size)
+    in_view = boxes_touching_image(det_3d.boxes, sample.calib, size)
     confident_3d = confident_detections(det_3d[in_view], ssl.tau_3d)
     confident_2d = confident_detections(det_2d, ssl.tau_2d)
     matched = match_detections(det_3d, det_2d, sample.calib, size, ssl.tau_hung, None)
@@ -125,14 +124,11 @@ def analyse_teacher(
 ) -> tuple[dict, np.ndarray]:
     """Pseudo-label quality of the pre-trained teacher under both rules, and Figure 3's points:
     rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections."""
-    _, model_2d, model_3d, _ = load_detectors(checkpoint)
+    loaded = load_detectors(checkpoint)
+    model_2d, model_3d = loaded.model_2d, loaded.model_3d
     data = config.data
     dataset = FrameDataset(
-        data.root,
-        config.ssl.unlabeled_split,
-        data.classes,
-        data.image_size,
-        pillar_grid(config.detector3d),
+        data.root, config.ssl.unlabeled_split, data.classes, data.image_size, model_3d.grid
     )
     count = min(max_frames, len(dataset))
     loader = torch.utils.data.DataLoader(
@@ -154,7 +150,7 @@ def analyse_teacher(
             ).items():
                 pseudo[method].append(rows)
             size = sample.image_transform.original_size
-            view = det_3d[camera_view_mask(det_3d.boxes, sample.calib, size)]
+            view = det_3d[boxes_touching_image(det_3d.boxes, sample.calib, size)]
             objects = np.isin(labels.names, data.classes)
             if len(view) == 0 or len(det_2d) == 0:
                 continue
@@ -258,12 +254,12 @@ def main() -> None:
         print(json.dumps({"train_wall_s": timings}))
         return
 
-    val = FrameDataset(
-        args.data, base.data.val_split, classes, base.data.image_size, pillar_grid(base.detector3d)
-    )
+    grid = build_detectors(base)[1].grid
+    val = FrameDataset(args.data, base.data.val_split, classes, base.data.image_size, grid)
     results = {}
     for name, run in [("labeled-only", "pretrain"), *[(m, m) for m in methods]]:
-        _, model_2d, model_3d, _ = load_detectors(out / run)
+        loaded = load_detectors(out / run)
+        model_2d, model_3d = loaded.model_2d, loaded.model_3d
         model_2d.to(context.device)
         model_3d.to(context.device)
         metrics = evaluate_detectors(

@@ -18,9 +18,11 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from detmatch.config import load_config
-from detmatch.models.detector2d import CenterNet2D
-from detmatch.models.detector3d import PointPillars3D
+from detmatch.data.dataset import collate_pillars
+from detmatch.models.build import build_detectors
+from detmatch.models.contract import forward_pillars
 from detmatch.models.pillars import pillarize
+from detmatch.structures import LabeledBoxes
 
 
 def random_cloud(rng: np.random.Generator, count: int = 60000) -> np.ndarray:
@@ -57,37 +59,26 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=10)
     args = parser.parse_args()
     config = load_config(args.config)
-    classes = len(config.data.classes)
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     width, height = config.data.image_size
 
-    model_2d = CenterNet2D(config.detector2d, classes).train()
+    model_2d, model_3d = (model.train() for model in build_detectors(config))
     images = torch.rand(args.batch, 3, height, width) * 255
-    targets_2d = [
-        model_2d.build_targets(np.array([[50.0, 40, 120, 90]]), np.array([0]), (width, height))
-    ] * args.batch
+    box_2d = LabeledBoxes(np.array([[50.0, 40, 120, 90]]), np.array([0]))
+    targets_2d = [model_2d.build_targets(box_2d, (width, height))] * args.batch
 
     def step_2d() -> None:
         model_2d.zero_grad()
         sum(model_2d.loss(model_2d(images), targets_2d).values()).backward()
 
-    model_3d = PointPillars3D(config.detector3d, classes).train()
-    pillars = [pillarize(random_cloud(rng), model_3d.grid) for _ in range(args.batch)]
-    features = torch.from_numpy(np.concatenate([p[0] for p in pillars]))
-    coords = torch.from_numpy(
-        np.concatenate(
-            [np.column_stack([np.full(len(p[1]), b), p[1]]) for b, p in enumerate(pillars)]
-        )
-    )
-    counts = torch.from_numpy(np.concatenate([p[2] for p in pillars]))
-    targets_3d = [
-        model_3d.build_targets(np.array([[20.0, 2, -0.9, 3.9, 1.6, 1.5, 0.3]]), np.array([0]))
-    ] * args.batch
+    pillars = collate_pillars([pillarize(random_cloud(rng), model_3d.grid) for _ in images])
+    box_3d = LabeledBoxes(np.array([[20.0, 2, -0.9, 3.9, 1.6, 1.5, 0.3]]), np.array([0]))
+    targets_3d = [model_3d.build_targets(box_3d)] * args.batch
 
     def step_3d() -> None:
         model_3d.zero_grad()
-        outputs = model_3d(features, coords, counts, batch_size=args.batch)
+        outputs = forward_pillars(model_3d, pillars)
         sum(model_3d.loss(outputs, targets_3d).values()).backward()
 
     cloud = random_cloud(rng)
@@ -99,8 +90,8 @@ def main() -> None:
     with torch.no_grad(), FlopCounterMode(display=False) as flops_2d:
         model_2d.eval()(images[:1])
     with torch.no_grad(), FlopCounterMode(display=False) as flops_3d:
-        one = coords[:, 0] == 0
-        model_3d.eval()(features[one], coords[one], counts[one], batch_size=1)
+        one = pillars.coords[:, 0] == 0
+        model_3d.eval()(pillars.features[one], pillars.coords[one], pillars.counts[one])
     model_2d.train()
     model_3d.train()
     seconds_2d = measure(step_2d, args.iters)

@@ -108,7 +108,7 @@ def _headline(metrics: dict) -> dict:
 
 
 def _predict(args: argparse.Namespace) -> int:
-    from detmatch.training.predict import predict_split
+    from detmatch.inference import predict_split
 
     count = predict_split(Path(args.checkpoint), Path(args.data), args.split, Path(args.out))
     print(f"wrote predictions for {count} frames to {args.out}/3d and {args.out}/2d")

@@ -62,8 +62,10 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class Detector2DConfig:
-    """CenterNet-style camera detector: strided conv backbone, stride-4 heads."""
+    """The camera detector. type: a name of `detmatch.models.build.DETECTORS_2D` ("centernet":
+    a CenterNet-style strided conv backbone with stride-4 heads, which the other keys shape)."""
 
+    type: str = "centernet"
     widths: tuple[int, ...] = (16, 32, 64, 128)
     depths: tuple[int, ...] = (1, 1, 2, 2)
     head_width: int = 64
@@ -76,8 +78,11 @@ class Detector2DConfig:
 
 @dataclass(frozen=True)
 class Detector3DConfig:
-    """PointPillars encoder + CenterPoint-style head. Ranges in metres, LiDAR frame."""
+    """The LiDAR detector. type: a name of `detmatch.models.build.DETECTORS_3D`
+    ("pointpillars": a PointPillars encoder + CenterPoint-style head, which the other keys
+    shape). Ranges in metres, LiDAR frame."""
 
+    type: str = "pointpillars"
     point_cloud_range: tuple[float, ...] = (0.0, -32.0, -3.0, 64.0, 32.0, 1.0)
     pillar_size: tuple[float, float] = (0.25, 0.25)
     max_points_per_pillar: int = 20

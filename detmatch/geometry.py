@@ -104,27 +104,92 @@ def project_boxes_to_image(
     return xyxy
 
 
+# ---------------------------------------------------------------------------------------------
+# "Inside the camera's view": one function per notion, each right for its use.
+
+# The consistency loss keeps a projected 3D box when at least this many of its corners fall in
+# the image and its corners' mean depth is at least this many metres (the authors' values).
+CONSISTENCY_MIN_CORNERS = 3
+CONSISTENCY_MIN_MEAN_DEPTH = 0.5
+# Height (LiDAR z, metres: about the road) at which bird's-eye-view cells are tested.
+BEV_VIEW_TEST_HEIGHT = -0.8
+
+
 def points_in_image(
-    points: np.ndarray, calib: Calibration, image_size: tuple[int, int], check_rows: bool = True
+    points: np.ndarray, calib: Calibration, image_size: tuple[int, int], min_depth: float = 0.0
 ) -> np.ndarray:
-    """(N, 3) LiDAR points -> (N,) bool: in front of the camera and inside the image's columns
-    (and rows, with check_rows). image_size is (W, H)."""
+    """(N, 3) LiDAR points -> (N,) bool: deeper than min_depth in front of the camera and
+    projecting inside the image (W, H). The building block of the notions below; the frame
+    picture draws the points it passes (with min_depth 1 m)."""
     uv, depth = lidar_to_image(points, calib)
     width, height = image_size
-    inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width)
-    if check_rows:
-        inside &= (uv[:, 1] >= 0) & (uv[:, 1] < height)
-    return inside
+    return (
+        (depth > min_depth)
+        & (uv[:, 0] >= 0)
+        & (uv[:, 0] < width)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] < height)
+    )
 
 
-def boxes_in_image_mask(
-    boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int], min_corners: int = 1
+def box_centres_in_image(
+    boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int]
 ) -> np.ndarray:
-    """(N, 7) LiDAR boxes -> (N,) bool: at least `min_corners` corners in front of the camera and
-    inside the image."""
-    corners = box3d_corners(boxes)
+    """(N, 7) LiDAR boxes -> (N,) bool: the box's centre projects into the image.
+
+    Used for KITTI result files (`detmatch.data.results`): KITTI labels objects in the camera's
+    field of view, and a box reported as a result row must have a place in the image.
+    """
+    return points_in_image(np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[:, :3], calib,
+                           image_size)  # fmt: skip
+
+
+def boxes_touching_image(
+    boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int]
+) -> np.ndarray:
+    """(N, 7) LiDAR boxes -> (N,) bool: at least one corner in front of the camera and inside
+    the image.
+
+    Used by the 2D-3D matching (`detmatch.pseudo_labels.match_detections`): a box the camera
+    sees even partly is a matching candidate (truncated objects included); the others can only
+    become LiDAR-only labels by the confidence fallback.
+    """
+    corners = box3d_corners(np.asarray(boxes, dtype=np.float64).reshape(-1, 7))
     inside = points_in_image(corners.reshape(-1, 3), calib, image_size)
-    return inside.reshape(len(corners), 8).sum(axis=1) >= min_corners
+    return inside.reshape(len(corners), 8).any(axis=1)
+
+
+def bev_cells_in_camera_view(
+    xy: np.ndarray, calib: Calibration, image_size: tuple[int, int]
+) -> np.ndarray:
+    """(N, 2) LiDAR x, y -> (N,) bool: the ground point at BEV_VIEW_TEST_HEIGHT projects in
+    front of the camera between the image's left and right edges (rows are not tested).
+
+    Used for the 3D detector's training targets: KITTI-style labels exist only in the camera's
+    horizontal field of view, so background is learned only in cells that pass (a cell far
+    away is in view although its ground point projects below the horizon rows, and vice versa).
+    """
+    points = np.column_stack([xy, np.full(len(xy), BEV_VIEW_TEST_HEIGHT)])
+    uv, depth = lidar_to_image(points, calib)
+    return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < image_size[0])
+
+
+def boxes_usable_for_consistency(
+    boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int]
+) -> np.ndarray:
+    """(N, 7) LiDAR boxes -> (N,) bool: at least CONSISTENCY_MIN_CORNERS corners in the image
+    and a mean corner depth of at least CONSISTENCY_MIN_MEAN_DEPTH metres.
+
+    Used by the 2D-teacher -> 3D-student consistency loss, whose differentiable torch twin is
+    `detmatch.training.consistency.project_boxes_torch`: a projection from fewer corners, or
+    of a box around the camera, is too distorted to compare with a 2D box.
+    """
+    corners = box3d_corners(np.asarray(boxes, dtype=np.float64).reshape(-1, 7))
+    inside = points_in_image(corners.reshape(-1, 3), calib, image_size).reshape(-1, 8)
+    _, depth = lidar_to_image(corners.reshape(-1, 3), calib)
+    return (inside.sum(axis=1) >= CONSISTENCY_MIN_CORNERS) & (
+        depth.reshape(-1, 8).mean(axis=1) >= CONSISTENCY_MIN_MEAN_DEPTH
+    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,53 +1,41 @@
-"""Running both detectors on batches and turning their outputs into KITTI result rows."""
+"""Running both detectors on batches, turning their outputs into KITTI result rows, and
+writing a checkpoint's result files for a split (`detmatch predict`)."""
 
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
+
 import torch
+from tqdm import tqdm
 
-from detmatch.data.dataset import Batch, flip_boxes_3d
-from detmatch.data.kitti import KittiObjects
+from detmatch.data.dataset import Batch, FrameDataset, collate
+from detmatch.data.kitti import KittiObjects, write_objects
 from detmatch.data.results import result_objects_2d, result_objects_3d
-from detmatch.models.detector2d import CenterNet2D
-from detmatch.models.detector3d import PointPillars3D
+from detmatch.models.build import load_detectors
+from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
 from detmatch.structures import Calibration, Detections
-
-
-def _to_numpy(values: tuple[torch.Tensor, ...], b: int) -> tuple[np.ndarray, ...]:
-    return tuple(v[b].detach().cpu().double().numpy() for v in values)
 
 
 @torch.no_grad()
 def predict_batch(
-    model_2d: CenterNet2D, model_3d: PointPillars3D, batch: Batch
+    model_2d: Detector2D, model_3d: Detector3D, batch: Batch
 ) -> list[tuple[Detections, Detections]]:
     """Both detectors on a batch, in eval mode; detections above each detector's score
     threshold, mapped back to the un-augmented frame (original pixels; LiDAR frame)."""
     model_2d.eval()
     model_3d.eval()
     batch = batch.to(next(model_3d.parameters()).device)
-    decoded_2d = model_2d.decode(*model_2d(batch.images))
-    decoded_3d = model_3d.decode(
-        *model_3d(
-            batch.pillar_features, batch.pillar_coords, batch.pillar_counts, batch_size=len(batch)
+    frames_2d = model_2d.detect(model_2d(batch.images))
+    frames_3d = model_3d.detect(forward_pillars(model_3d, batch.pillars))
+    return [
+        (
+            sample.image_transform.invert_detections(detections_2d),
+            sample.cloud.invert_detections(detections_3d),
         )
-    )
-    results = []
-    for b, sample in enumerate(batch.samples):
-        boxes, scores, classes, probabilities = _to_numpy(decoded_2d, b)
-        keep = scores > model_2d.config.score_threshold
-        original_boxes = sample.image_transform.invert(boxes[keep])
-        detections_2d = Detections(
-            original_boxes, scores[keep], classes[keep].astype(np.int64), probabilities[keep]
+        for sample, detections_2d, detections_3d in zip(
+            batch.samples, frames_2d, frames_3d, strict=True
         )
-        boxes, scores, classes, probabilities = _to_numpy(decoded_3d, b)
-        keep = scores > model_3d.config.score_threshold
-        boxes = flip_boxes_3d(boxes[keep]) if sample.flipped else boxes[keep]
-        detections_3d = Detections(
-            boxes, scores[keep], classes[keep].astype(np.int64), probabilities[keep]
-        )
-        results.append((detections_2d, detections_3d))
-    return results
+    ]
 
 
 def detections_2d_to_objects(detections: Detections, class_names: tuple[str, ...]) -> KittiObjects:
@@ -65,3 +53,31 @@ def detections_3d_to_objects(
     """3D detections whose centre is in the camera's view -> KITTI result rows."""
     names = [class_names[c] for c in detections.classes]
     return result_objects_3d(detections.boxes, names, detections.scores, calib, image_size)
+
+
+def predict_split(
+    checkpoint: Path, data_root: Path, split: str, out_dir: Path, batch_size: int = 4
+) -> int:
+    """Write OUT/3d/ID.txt (camera-frame boxes + projected 2D boxes) and OUT/2d/ID.txt (2D boxes
+    with placeholder 3D fields) for every frame of the split. Returns the number of frames."""
+    loaded = load_detectors(checkpoint)
+    config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
+    classes = config.data.classes
+    dataset = FrameDataset(
+        data_root, split, classes, config.data.image_size, model_3d.grid, with_labels=False
+    )
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, collate_fn=collate)
+    out_dir = Path(out_dir)
+    with tqdm(total=len(dataset), desc=f"predict {split}", dynamic_ncols=True) as progress:
+        for batch in loader:
+            for sample, (detections_2d, detections_3d) in zip(
+                batch.samples, predict_batch(model_2d, model_3d, batch), strict=True
+            ):
+                objects_3d = detections_3d_to_objects(
+                    detections_3d, classes, sample.calib, sample.image_transform.original_size
+                )
+                write_objects(out_dir / "3d" / f"{sample.frame_id}.txt", objects_3d, decimals=4)
+                objects_2d = detections_2d_to_objects(detections_2d, classes)
+                write_objects(out_dir / "2d" / f"{sample.frame_id}.txt", objects_2d, decimals=4)
+            progress.update(len(batch))
+    return len(dataset)

@@ -12,7 +12,7 @@ from enum import IntEnum
 import numpy as np
 
 from detmatch.constants import TAU_3D, TAU_HUNG
-from detmatch.geometry import boxes_in_image_mask, project_boxes_to_image
+from detmatch.geometry import boxes_touching_image, project_boxes_to_image
 from detmatch.matching import hungarian_match, matching_cost
 from detmatch.structures import Calibration, Detections
 
@@ -54,14 +54,6 @@ class MatchedLabels:
         return self.provenance == Provenance.MATCHED
 
 
-def camera_view_mask(
-    boxes_3d: np.ndarray, calib: Calibration, image_size: tuple[int, int]
-) -> np.ndarray:
-    """(N, 7) LiDAR boxes -> (N,) bool: at least one corner in front of the camera and inside
-    the image. Boxes outside fall back to confidence thresholding."""
-    return boxes_in_image_mask(boxes_3d, calib, image_size, min_corners=1)
-
-
 def match_detections(
     detections_3d: Detections,
     detections_2d: Detections,
@@ -77,7 +69,7 @@ def match_detections(
     score exceeds tau_3d_outside_view are kept as LiDAR-only labels (None disables that
     fallback). image_size is (W, H) of the original image.
     """
-    in_view = camera_view_mask(detections_3d.boxes, calib, image_size)
+    in_view = boxes_touching_image(detections_3d.boxes, calib, image_size)
     view_rows = np.flatnonzero(in_view)
     projected = project_boxes_to_image(detections_3d.boxes[view_rows], calib, image_size)
     cost = matching_cost(

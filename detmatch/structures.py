@@ -6,6 +6,7 @@ Models convert to tensors at their own boundary.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -256,3 +257,42 @@ class Detections:
         return Detections(
             self.boxes[index], self.scores[index], self.classes[index], self.probabilities[index]
         )
+
+
+@dataclass(frozen=True)
+class LabeledBoxes:
+    """Objects a detector learns from, in the frame of its input: ground truth or pseudo-labels.
+
+    boxes: (N, 4) xyxy pixels (2D) or (N, 7) LiDAR boxes (3D); classes: (N,) int64 class ids;
+    probabilities: (N, C) a teacher's class probabilities for pseudo-labels, None for ground
+    truth.
+    """
+
+    boxes: np.ndarray
+    classes: np.ndarray
+    probabilities: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        boxes = np.asarray(self.boxes, dtype=np.float64)
+        object.__setattr__(self, "boxes", boxes)
+        object.__setattr__(self, "classes", np.asarray(self.classes, dtype=np.int64).reshape(-1))
+        if boxes.ndim != 2 or boxes.shape[1] not in (4, 7):
+            raise ValueError(f"LabeledBoxes.boxes expects (N, 4) or (N, 7), got {boxes.shape}")
+        if len(self.classes) != len(boxes):
+            raise ValueError(f"LabeledBoxes: {len(boxes)} boxes but {len(self.classes)} classes")
+        if self.probabilities is not None and len(self.probabilities) != len(boxes):
+            raise ValueError(
+                f"LabeledBoxes: {len(boxes)} boxes but {len(self.probabilities)} probability rows"
+            )
+
+    def __len__(self) -> int:
+        return len(self.classes)
+
+    def map_boxes(self, transform: Callable[[np.ndarray], np.ndarray]) -> LabeledBoxes:
+        """The same objects with transform(boxes) as boxes (e.g. moved into another frame)."""
+        return LabeledBoxes(transform(self.boxes), self.classes, self.probabilities)
+
+    @staticmethod
+    def empty(box_size: int) -> LabeledBoxes:
+        """No objects; box_size 4 (2D) or 7 (3D)."""
+        return LabeledBoxes(np.zeros((0, box_size)), np.zeros(0, dtype=np.int64))

@@ -26,15 +26,12 @@ import torch.nn.functional as F
 from torch import nn
 from torch.onnx.operators import shape_as_tensor
 
-from detmatch.models.detector2d import CenterNet2D
-from detmatch.models.detector3d import PointPillars3D
+from detmatch.models.contract import Detector2D, Detector3D
 from serving.manifest import TensorSpec
 from serving.repository import (
     DECODED_OUTPUTS,
     INPUTS_2D,
     INPUTS_3D,
-    RAW_OUTPUTS_2D,
-    RAW_OUTPUTS_3D,
 )
 
 OPSET = 17
@@ -52,7 +49,7 @@ class ImageDetector2DGraph(nn.Module):
     classes (K,) int64, probabilities (K, C), and the raw maps heatmap logits (1, C, h, w),
     size (1, 2, h, w), offset (1, 2, h, w)."""
 
-    def __init__(self, detector: CenterNet2D, input_size: tuple[int, int]) -> None:
+    def __init__(self, detector: Detector2D, input_size: tuple[int, int]) -> None:
         super().__init__()
         self.detector = detector
         self.input_size = (int(input_size[0]), int(input_size[1]))
@@ -63,7 +60,7 @@ class ImageDetector2DGraph(nn.Module):
         x = image.permute(2, 0, 1).unsqueeze(0).to(torch.float32)
         x = F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
         maps = self.detector(x)
-        boxes, scores, classes, probabilities = self.detector.decode(*maps)
+        boxes, scores, classes, probabilities = self.detector.decode(maps)
         # Input pixels -> original pixels: x * W0 / w, y * H0 / h.
         scale = torch.stack([original[1] / width, original[0] / height]).repeat(2)
         return boxes[0] * scale, scores[0], classes[0], probabilities[0], *maps
@@ -72,9 +69,10 @@ class ImageDetector2DGraph(nn.Module):
 class PillarDetector3DGraph(nn.Module):
     """features (P, M, 9) float32, coords (P, 2) int64 (iy, ix), num_points (P,) int64 ->
     boxes (K, 7) LiDAR x y z l w h yaw, scores (K,), classes (K,) int64, probabilities (K, C),
-    and the raw maps heatmap logits (1, C, h, w) and regression (1, 8, h, w)."""
+    and the detector's raw outputs (batch of 1; PointPillars3D: heatmap logits (1, C, h, w)
+    and regression (1, 8, h, w))."""
 
-    def __init__(self, detector: PointPillars3D) -> None:
+    def __init__(self, detector: Detector3D) -> None:
         super().__init__()
         self.detector = detector
 
@@ -83,7 +81,7 @@ class PillarDetector3DGraph(nn.Module):
     ) -> tuple[torch.Tensor, ...]:
         batch_coords = torch.cat([torch.zeros_like(coords[:, :1]), coords], dim=1)
         maps = self.detector(features, batch_coords, num_points, batch_size=1)
-        boxes, scores, classes, probabilities = self.detector.decode(*maps)
+        boxes, scores, classes, probabilities = self.detector.decode(maps)
         return boxes[0], scores[0], classes[0], probabilities[0], *maps
 
 
@@ -137,7 +135,7 @@ def _declare_output_shapes(path: Path, shapes: dict[str, tuple[int, ...]]) -> No
 
 
 def export_detector_2d(
-    detector: CenterNet2D, input_size: tuple[int, int], path: Path, example_image: np.ndarray
+    detector: Detector2D, input_size: tuple[int, int], path: Path, example_image: np.ndarray
 ) -> None:
     """Write the 2D graph to path (dynamic image height and width) and run onnx.checker."""
     graph = ImageDetector2DGraph(detector, input_size)
@@ -146,13 +144,13 @@ def export_detector_2d(
         (torch.from_numpy(np.array(example_image, dtype=np.uint8, copy=True)),),
         path,
         INPUTS_2D,
-        DECODED_OUTPUTS + RAW_OUTPUTS_2D,
+        DECODED_OUTPUTS + detector.output_names,
         {"image": {0: "height", 1: "width"}},
     )
 
 
 def export_detector_3d(
-    detector: PointPillars3D,
+    detector: Detector3D,
     path: Path,
     example_pillars: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
@@ -165,7 +163,7 @@ def export_detector_3d(
         tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in example_pillars),
         path,
         INPUTS_3D,
-        DECODED_OUTPUTS + RAW_OUTPUTS_3D,
+        DECODED_OUTPUTS + detector.output_names,
         {name: {0: "pillars"} for name in INPUTS_3D},
     )
 

@@ -19,7 +19,7 @@ import detmatch
 from detmatch.config import ExperimentConfig, config_to_dict
 from detmatch.constants import IMAGE_MEAN, IMAGE_STD
 from detmatch.files import sha256_file
-from detmatch.models.detector3d import pillar_grid
+from detmatch.models.pillars import PillarGrid
 from export.graphs import EXPORTER, io_spec, opset_of
 from export.parity import ParityReport
 from serving.manifest import (
@@ -59,8 +59,9 @@ def build_manifest(
     checkpoint_file: Path,
     parity: ParityReport,
     exported_at: float,
+    grid: PillarGrid,
 ) -> Manifest:
-    """The manifest of the version whose files are in `staging`."""
+    """The manifest of the version whose files are in `staging`; grid: the 3D detector's."""
     detector2d, detector3d = config.detector2d, config.detector3d
     path_2d, path_3d = staging / MODEL_2D_FILE, staging / MODEL_3D_FILE
     plain_config = config_to_dict(config)
@@ -104,7 +105,7 @@ def build_manifest(
                     in_graph=False,
                     input="LiDAR points: (N, 4) float32 x, y, z, intensity, LiDAR frame",
                     function="detmatch.models.pillars.pillarize(points, grid)",
-                    grid=PillarGridSpec.of(pillar_grid(detector3d)),
+                    grid=PillarGridSpec.of(grid),
                 ),
                 postprocessing=Postprocessing(
                     in_graph="3x3 max-pool peaks, top-k, box regression decoded",

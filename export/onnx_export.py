@@ -19,10 +19,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from detmatch.models.detector3d import pillar_grid
+from detmatch.models.build import load_detectors
 from detmatch.models.pillars import pillarize
-from detmatch.training.checkpoint import resolve_checkpoint
-from detmatch.training.predict import load_detectors
 from export.graphs import export_detector_2d, export_detector_3d
 from export.manifest import build_manifest
 from export.parity import ParityError, ParityReport, Tolerance, check_parity, load_parity_frames
@@ -71,8 +69,9 @@ def export_checkpoint(
         version = parse_version(version)
         if (repository / version).exists():
             raise RepositoryError(f"version {version} already exists in {repository}")
-    checkpoint_file = resolve_checkpoint(Path(checkpoint))
-    config, model_2d, model_3d, state = load_detectors(checkpoint_file)
+    loaded = load_detectors(checkpoint)
+    config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
+    checkpoint_file, state = loaded.path, loaded.checkpoint
     log(f"loaded {checkpoint_file} (step {state.get('step')})")
     if parity_data is None:
         training_data = Path(config.data.root)
@@ -89,7 +88,7 @@ def export_checkpoint(
         export_detector_3d(
             model_3d,
             staging / MODEL_3D_FILE,
-            pillarize(example.points, pillar_grid(config.detector3d)),
+            pillarize(example.points, model_3d.grid).arrays,
         )
         log("exported both graphs; onnx.checker passed")
         settings = SessionSettings()
@@ -107,9 +106,10 @@ def export_checkpoint(
         log(f"parity: {report.summary()}")
 
         def write_manifest(name: str) -> None:
-            build_manifest(name, staging, config, state, checkpoint_file, report, started).save(
-                staging
+            manifest = build_manifest(
+                name, staging, config, state, checkpoint_file, report, started, model_3d.grid
             )
+            manifest.save(staging)
 
         name, path = publish(repository, staging, version, finalize=write_manifest)
     log(f"published version {name} at {path}")

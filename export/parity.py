@@ -35,12 +35,11 @@ import torch
 from detmatch.config import ExperimentConfig
 from detmatch.data.dataset import collate, make_sample
 from detmatch.data.kitti import KittiDataset
-from detmatch.models.detector2d import CenterNet2D
-from detmatch.models.detector3d import PointPillars3D, pillar_grid
+from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
 from detmatch.models.pillars import pillarize
 from detmatch.structures import Frame
 from export.graphs import ExportCheckError
-from serving.repository import DECODED_OUTPUTS, RAW_OUTPUTS_2D, RAW_OUTPUTS_3D
+from serving.repository import DECODED_OUTPUTS, INPUTS_3D
 
 
 class ParityError(ExportCheckError):
@@ -265,72 +264,65 @@ def compare_decoded(
 
 
 def torch_reference(
-    model_2d: CenterNet2D, model_3d: PointPillars3D, config: ExperimentConfig, frame: Frame
+    model_2d: Detector2D, model_3d: Detector3D, config: ExperimentConfig, frame: Frame
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], int]:
     """Training's pipeline on one frame: (2D outputs, 3D outputs, number of pillars). 2D boxes
     are mapped back to original pixels."""
     sample = make_sample(
-        frame,
-        config.data.classes,
-        config.data.image_size,
-        pillar_grid(config.detector3d),
-        flip=False,
+        frame, config.data.classes, config.data.image_size, model_3d.grid, flip=False
     )
     batch = collate([sample])
     model_2d.eval()
     model_3d.eval()
     with torch.no_grad():
         maps_2d = model_2d(batch.images)
-        decoded_2d = model_2d.decode(*maps_2d)
-        maps_3d = model_3d(
-            batch.pillar_features, batch.pillar_coords, batch.pillar_counts, batch_size=1
-        )
-        decoded_3d = model_3d.decode(*maps_3d)
+        decoded_2d = model_2d.decode(maps_2d)
+        maps_3d = forward_pillars(model_3d, batch.pillars)
+        decoded_3d = model_3d.decode(maps_3d)
     out_2d = {n: t[0].numpy() for n, t in zip(DECODED_OUTPUTS, decoded_2d, strict=True)}
     out_2d["boxes"] = sample.image_transform.invert(out_2d["boxes"].astype(np.float64))
-    out_2d.update({n: t.numpy() for n, t in zip(RAW_OUTPUTS_2D, maps_2d, strict=True)})
+    out_2d.update({n: t.numpy() for n, t in zip(model_2d.output_names, maps_2d, strict=True)})
     out_3d = {n: t[0].numpy() for n, t in zip(DECODED_OUTPUTS, decoded_3d, strict=True)}
-    out_3d.update({n: t.numpy() for n, t in zip(RAW_OUTPUTS_3D, maps_3d, strict=True)})
-    return out_2d, out_3d, len(sample.pillar_coords)
+    out_3d.update({n: t.numpy() for n, t in zip(model_3d.output_names, maps_3d, strict=True)})
+    return out_2d, out_3d, len(sample.pillars)
 
 
 def check_parity(
     session_2d: ort.InferenceSession,
     session_3d: ort.InferenceSession,
-    model_2d: CenterNet2D,
-    model_3d: PointPillars3D,
+    model_2d: Detector2D,
+    model_3d: Detector3D,
     config: ExperimentConfig,
     frames: Sequence[tuple[str, Frame]],
     tolerance: Tolerance,
 ) -> ParityReport:
     """Compare both graphs with PyTorch on every frame."""
-    grid = pillar_grid(config.detector3d)
-    names_2d = DECODED_OUTPUTS + RAW_OUTPUTS_2D
-    names_3d = DECODED_OUTPUTS + RAW_OUTPUTS_3D
+    names_2d = DECODED_OUTPUTS + model_2d.output_names
+    names_3d = DECODED_OUTPUTS + model_3d.output_names
     results = []
     for source, frame in frames:
         reference_2d, reference_3d, pillars = torch_reference(model_2d, model_3d, config, frame)
-        features, coords, num_points = pillarize(frame.points, grid)
         outputs_2d = session_2d.run(list(names_2d), {"image": frame.image})
-        outputs_3d = session_3d.run(
-            list(names_3d), {"features": features, "coords": coords, "num_points": num_points}
-        )
+        arrays = pillarize(frame.points, model_3d.grid).arrays
+        outputs_3d = session_3d.run(list(names_3d), dict(zip(INPUTS_3D, arrays, strict=True)))
         got_2d = dict(zip(names_2d, outputs_2d, strict=True))
         got_3d = dict(zip(names_3d, outputs_3d, strict=True))
         result = FrameParity(source, frame.frame_id, frame.image_size, pillars)
         for model, reference, got, raw in (
-            ("2d", reference_2d, got_2d, RAW_OUTPUTS_2D),
-            ("3d", reference_3d, got_3d, RAW_OUTPUTS_3D),
+            ("2d", reference_2d, got_2d, model_2d.output_names),
+            ("3d", reference_3d, got_3d, model_3d.output_names),
         ):
             for name in raw:
                 error, problems = compare_raw(f"{model}/{name}", reference[name], got[name],
                                               tolerance)  # fmt: skip
                 result.max_abs_error[f"{model}/{name}"] = error
                 result.problems.extend(problems)
-            heat_reference = _sigmoid(reference["heatmap"][0])
-            heat_got = _sigmoid(got["heatmap"][0])
-            margin = 2 * float(np.abs(heat_reference - heat_got).max()) + 1e-7
-            ties = (PeakTies(heat_reference, margin), PeakTies(heat_got, margin))
+            ties = None
+            if "heatmap" in raw:  # a peak-decoding detector: near ties may be excused
+                heat_reference = _sigmoid(reference["heatmap"][0])
+                heat_got = _sigmoid(got["heatmap"][0])
+                margin = 2 * float(np.abs(heat_reference - heat_got).max()) + 1e-7
+                ties = (PeakTies(heat_reference, margin), PeakTies(heat_got, margin))
             counts, problems = compare_decoded(model, reference, got, tolerance, ties)
             for key in ("boxes", "scores", "probabilities"):
                 result.max_abs_error[f"{model}/{key}"] = counts.get(f"max_abs_error/{key}", 0.0)

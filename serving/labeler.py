@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from detmatch.models.pillars import PILLAR_FEATURES, pillarize
+from detmatch.models.pillars import PILLAR_FEATURES, Pillars, pillarize
 from detmatch.pseudo_labels import MatchedLabels, match_detections
 from detmatch.structures import Calibration, Detections
 from serving.repository import (
@@ -134,17 +134,18 @@ class Labeler:
         """(N, 4) float32 LiDAR points -> (the 3D graph's top-k detections (unthresholded),
         seconds in pillarize, seconds in the graph)."""
         start = time.perf_counter()
-        features, coords, num_points = pillarize(points, self.grid)
-        if len(coords) == 0:
+        pillars = pillarize(points, self.grid)
+        if len(pillars) == 0:
             # No occupied pillar. A single pillar with zero points at cell (0, 0) scatters a
             # zero feature, exactly the empty canvas; the graph needs at least one pillar.
-            features = np.zeros((1, self.grid.max_points_per_pillar, PILLAR_FEATURES), np.float32)
-            coords = np.zeros((1, 2), dtype=np.int64)
-            num_points = np.zeros(1, dtype=np.int64)
+            pillars = Pillars(
+                np.zeros((1, self.grid.max_points_per_pillar, PILLAR_FEATURES), np.float32),
+                np.zeros((1, 2), dtype=np.int64),
+                np.zeros(1, dtype=np.int64),
+            )
         mark = time.perf_counter()
         outputs = self.session_3d.run(
-            list(DECODED_OUTPUTS),
-            {"features": features, "coords": coords, "num_points": num_points},
+            list(DECODED_OUTPUTS), dict(zip(INPUTS_3D, pillars.arrays, strict=True))
         )
         return _detections(outputs), mark - start, time.perf_counter() - mark
 

@@ -38,12 +38,11 @@ STAGING_PREFIX = ".staging-"
 # A staging directory this old belongs to an export that was killed.
 STALE_STAGING_SECONDS = 24 * 3600
 
-# Graph input and output names: the contract between the exporter and the labeler.
+# Graph input and output names: the contract between the exporter and the labeler (the graphs
+# also output each detector's raw head maps, named by its `output_names`).
 INPUTS_2D = ("image",)
 INPUTS_3D = ("features", "coords", "num_points")
 DECODED_OUTPUTS = ("boxes", "scores", "classes", "probabilities")
-RAW_OUTPUTS_2D = ("heatmap", "size", "offset")
-RAW_OUTPUTS_3D = ("heatmap", "regression")
 
 
 class RepositoryError(ValueError):

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -19,6 +20,7 @@ import torch.nn.functional as F
 
 from detmatch.constants import IMAGE_MEAN, IMAGE_STD
 from detmatch.geometry import limit_period
+from detmatch.structures import Detections
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,15 @@ class CloudTransform:
         out[:, :3] = (xyz @ self._matrix().T) * self.scale
         return out.astype(np.asarray(points).dtype)
 
+    def invert_points(self, points: np.ndarray) -> np.ndarray:
+        """(N, >=3) points, augmented -> un-augmented frame (float64; extra columns pass)."""
+        out = np.array(points, dtype=np.float64, copy=True)
+        xyz = (out[:, :3] / self.scale) @ self._matrix()
+        if self.flipped:
+            xyz[:, 1] = -xyz[:, 1]
+        out[:, :3] = xyz
+        return out
+
     def apply_boxes(self, boxes: np.ndarray) -> np.ndarray:
         """(N, 7) LiDAR boxes, un-augmented -> augmented frame."""
         out = np.asarray(boxes, dtype=np.float64).reshape(-1, 7).copy()
@@ -62,6 +73,10 @@ class CloudTransform:
         if self.flipped:
             out[:, 1], out[:, 6] = -out[:, 1], -out[:, 6]
         return out
+
+    def invert_detections(self, detections: Detections) -> Detections:
+        """3D detections, augmented -> un-augmented frame."""
+        return dataclasses.replace(detections, boxes=self.invert_boxes(detections.boxes))
 
     def invert_boxes_torch(self, boxes: torch.Tensor) -> torch.Tensor:
         """Differentiable invert_boxes for (N, 7) tensors (the consistency loss needs it)."""

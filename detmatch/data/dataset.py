@@ -14,10 +14,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from detmatch.data.augment import CloudTransform
 from detmatch.data.kitti import KittiDataset
 from detmatch.geometry import project_boxes_to_image
-from detmatch.models.pillars import PillarGrid, pillarize
-from detmatch.structures import Calibration, Frame
+from detmatch.models.contract import CameraView
+from detmatch.models.pillars import PillarGrid, Pillars, pillarize
+from detmatch.structures import Calibration, Detections, Frame, LabeledBoxes
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,10 @@ class ImageTransform:
             boxes[:, [0, 2]] = self.original_size[0] - boxes[:, [2, 0]]
         sx, sy = self.scale
         return boxes * np.array([sx, sy, sx, sy])
+
+    def invert_detections(self, detections: Detections) -> Detections:
+        """2D detections, input pixels -> original pixels."""
+        return dataclasses.replace(detections, boxes=self.invert(detections.boxes))
 
     def invert(self, boxes: np.ndarray) -> np.ndarray:
         """(N, 4) xyxy input pixels -> original pixels."""
@@ -84,29 +90,30 @@ def image_to_tensor(image: np.ndarray, transform: ImageTransform) -> torch.Tenso
 
 @dataclass
 class Sample:
-    """One frame ready for both detectors (see ImageTransform / flip_boxes_3d for frames).
+    """One frame ready for both detectors (see ImageTransform and CloudTransform for frames).
 
-    image: (3, h, w) network input; boxes_2d: (N, 4) input pixels; boxes_3d: (M, 7) LiDAR frame
-    after the flip; pillars: (P, M, 9) features, (P, 2) coords, (P,) counts; points: (N, 4)
-    LiDAR points after the flip.
+    image: (3, h, w) network input; gt_2d: boxes in input pixels; gt_3d: LiDAR boxes in the
+    augmented frame; pillars: of the augmented cloud; points: (N, 4) the augmented cloud.
     """
 
     frame_id: str
     calib: Calibration
     image_transform: ImageTransform
+    cloud: CloudTransform
     image: torch.Tensor
-    boxes_2d: np.ndarray
-    classes_2d: np.ndarray
-    boxes_3d: np.ndarray
-    classes_3d: np.ndarray
-    pillar_features: np.ndarray
-    pillar_coords: np.ndarray
-    pillar_counts: np.ndarray
+    gt_2d: LabeledBoxes
+    gt_3d: LabeledBoxes
+    pillars: Pillars
     points: np.ndarray
 
     @property
     def flipped(self) -> bool:
         return self.image_transform.flipped
+
+    @property
+    def camera_view(self) -> CameraView:
+        """Where this frame's 3D labels exist, for the 3D detector's targets."""
+        return CameraView(self.calib, self.image_transform.original_size, self.cloud)
 
 
 @dataclass
@@ -114,9 +121,7 @@ class Batch:
     frame_ids: list[str]
     samples: list[Sample]
     images: torch.Tensor
-    pillar_features: torch.Tensor
-    pillar_coords: torch.Tensor
-    pillar_counts: torch.Tensor
+    pillars: Pillars
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -124,11 +129,7 @@ class Batch:
     def to(self, device: torch.device) -> Batch:
         """The batch with its tensors on device (the samples stay numpy)."""
         return dataclasses.replace(
-            self,
-            images=self.images.to(device, non_blocking=True),
-            pillar_features=self.pillar_features.to(device, non_blocking=True),
-            pillar_coords=self.pillar_coords.to(device, non_blocking=True),
-            pillar_counts=self.pillar_counts.to(device, non_blocking=True),
+            self, images=self.images.to(device, non_blocking=True), pillars=self.pillars.to(device)
         )
 
 
@@ -144,67 +145,67 @@ def make_sample(
     image and pillarize the points. projected_2d: 2D boxes are the 3D labels projected into
     the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes."""
     transform = ImageTransform(frame.image_size, tuple(input_size), flip)
-    boxes_2d, classes_2d = np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
-    boxes_3d, classes_3d = np.zeros((0, 7)), np.zeros(0, dtype=np.int64)
+    cloud = CloudTransform(flipped=flip)
+    gt_2d, gt_3d = LabeledBoxes.empty(4), LabeledBoxes.empty(7)
     if frame.labels is not None:
         names = [str(n) for n in frame.labels.names]
         keep = np.array([n in classes for n in names], dtype=bool)
         class_ids = np.array(
             [classes.index(n) if n in classes else -1 for n in names], dtype=np.int64
         )
-        boxes_3d, classes_3d = frame.labels.boxes_3d.data[keep], class_ids[keep]
+        boxes_3d = frame.labels.boxes_3d.data[keep]
         boxes_2d = frame.labels.boxes_2d.xyxy[keep]
         if projected_2d:
             boxes_2d = project_boxes_to_image(boxes_3d, frame.calib, frame.image_size)
-        boxes_2d, classes_2d = transform.apply(boxes_2d), class_ids[keep]
-        if flip:
-            boxes_3d = flip_boxes_3d(boxes_3d)
+        gt_2d = LabeledBoxes(transform.apply(boxes_2d), class_ids[keep])
+        gt_3d = LabeledBoxes(flip_boxes_3d(boxes_3d) if flip else boxes_3d, class_ids[keep])
     points = flip_points(frame.points) if flip else frame.points
-    features, coords, counts = pillarize(points, grid)
     return Sample(
         frame_id=frame.frame_id,
         calib=frame.calib,
         image_transform=transform,
+        cloud=cloud,
         image=image_to_tensor(frame.image, transform),
-        boxes_2d=boxes_2d,
-        classes_2d=classes_2d,
-        boxes_3d=boxes_3d,
-        classes_3d=classes_3d,
-        pillar_features=features,
-        pillar_coords=coords,
-        pillar_counts=counts,
+        gt_2d=gt_2d,
+        gt_3d=gt_3d,
+        pillars=pillarize(points, grid),
         points=points,
     )
 
 
-def collate_pillars(
-    pillars: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-frame (features, coords (P, 2), counts) -> batched tensors, coords with the batch
-    index prepended."""
+def collate_pillars(frames: list[Pillars]) -> Pillars:
+    """One-frame pillars -> a batch's tensors, coords (P, 3) with the frame index first."""
     coords = [
-        np.concatenate([np.full((len(c), 1), b, dtype=np.int64), c], axis=1)
-        for b, (_, c, _) in enumerate(pillars)
+        np.concatenate([np.full((len(p.coords), 1), b, dtype=np.int64), p.coords], axis=1)
+        for b, p in enumerate(frames)
     ]
-    return (
-        torch.from_numpy(np.concatenate([f for f, _, _ in pillars])),
+    return Pillars(
+        torch.from_numpy(np.concatenate([p.features for p in frames])),
         torch.from_numpy(np.concatenate(coords)),
-        torch.from_numpy(np.concatenate([n for _, _, n in pillars])),
+        torch.from_numpy(np.concatenate([p.counts for p in frames])),
+        batch_size=len(frames),
+    )
+
+
+def cat_pillars(first: Pillars, second: Pillars) -> Pillars:
+    """Two batches' pillars as one batch: second's frames follow first's."""
+    shifted = second.coords.clone()
+    shifted[:, 0] += first.batch_size
+    return Pillars(
+        torch.cat([first.features, second.features]),
+        torch.cat([first.coords, shifted]),
+        torch.cat([first.counts, second.counts]),
+        batch_size=first.batch_size + second.batch_size,
     )
 
 
 def collate(samples: list[Sample]) -> Batch:
     """Stack images; concatenate pillars with their batch index as the first coordinate."""
-    features, coords, counts = collate_pillars(
-        [(s.pillar_features, s.pillar_coords, s.pillar_counts) for s in samples]
-    )
     return Batch(
         frame_ids=[s.frame_id for s in samples],
         samples=samples,
         images=torch.stack([s.image for s in samples]),
-        pillar_features=features,
-        pillar_coords=coords,
-        pillar_counts=counts,
+        pillars=collate_pillars([s.pillars for s in samples]),
     )
 
 

@@ -13,19 +13,12 @@ from detmatch.data.kitti import (
     KittiObjects,
 )
 from detmatch.geometry import (
+    box_centres_in_image,
     lidar_to_kitti_camera_boxes,
     limit_period,
-    points_in_image,
     project_boxes_to_image,
 )
 from detmatch.structures import Calibration
-
-
-def in_camera_view(
-    boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int]
-) -> np.ndarray:
-    """(N, 7) LiDAR boxes -> (N,) bool: the box centre projects into the image, in front."""
-    return points_in_image(np.asarray(boxes).reshape(-1, 7)[:, :3], calib, image_size)
 
 
 def result_objects_3d(
@@ -38,7 +31,7 @@ def result_objects_3d(
     """(N, 7) LiDAR boxes in the camera's view -> KITTI result rows (camera-frame box, projected
     2D box, alpha). Boxes whose centre is outside the image are dropped: KITTI labels only the
     camera's field of view."""
-    keep = in_camera_view(boxes, calib, image_size)
+    keep = box_centres_in_image(boxes, calib, image_size)
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[keep]
     location, dimensions, rotation_y = lidar_to_kitti_camera_boxes(boxes, calib)
     n = len(boxes)

@@ -10,8 +10,16 @@ import numpy as np
 import torch
 
 from detmatch.data.augment import CloudTransform, sample_cloud_transform, strong_photometric
-from detmatch.data.dataset import Batch, FrameDataset, Sample, collate, collate_pillars
-from detmatch.models.pillars import pillarize
+from detmatch.data.dataset import (
+    Batch,
+    FrameDataset,
+    Sample,
+    cat_pillars,
+    collate,
+    collate_pillars,
+)
+from detmatch.models.pillars import Pillars, pillarize
+from detmatch.structures import LabeledBoxes
 
 
 @dataclass
@@ -23,7 +31,7 @@ class UnlabeledSample:
     weak: Sample
     student_image: torch.Tensor
     student_cloud: CloudTransform
-    student_pillars: tuple[np.ndarray, np.ndarray, np.ndarray]
+    student_pillars: Pillars
 
 
 @dataclass
@@ -31,12 +39,30 @@ class UnlabeledBatch:
     weak: Batch
     student_images: torch.Tensor
     student_clouds: list[CloudTransform]
-    student_pillar_features: torch.Tensor
-    student_pillar_coords: torch.Tensor
-    student_pillar_counts: torch.Tensor
+    student_pillars: Pillars
 
     def __len__(self) -> int:
         return len(self.weak)
+
+    def student_inputs(self, labeled: Batch) -> tuple[torch.Tensor, Pillars]:
+        """The students' batch: labeled frames first, then the strong unlabeled views."""
+        images = torch.cat([labeled.images, self.student_images])
+        return images, cat_pillars(labeled.pillars, self.student_pillars)
+
+    def to_student_frames(
+        self, labels_2d: list[LabeledBoxes], labels_3d: list[LabeledBoxes]
+    ) -> tuple[list[LabeledBoxes], list[LabeledBoxes]]:
+        """Per-frame labels in the un-augmented frame (2D original pixels, 3D LiDAR) -> the
+        students' frames (2D input pixels, 3D the strong view's cloud)."""
+        moved_2d = [
+            labels.map_boxes(sample.image_transform.apply)
+            for labels, sample in zip(labels_2d, self.weak.samples, strict=True)
+        ]
+        moved_3d = [
+            labels.map_boxes(cloud.apply_boxes)
+            for labels, cloud in zip(labels_3d, self.student_clouds, strict=True)
+        ]
+        return moved_2d, moved_3d
 
     def to(self, device: torch.device) -> UnlabeledBatch:
         """The batch with its tensors on device (transforms and samples stay numpy)."""
@@ -44,9 +70,7 @@ class UnlabeledBatch:
             self,
             weak=self.weak.to(device),
             student_images=self.student_images.to(device, non_blocking=True),
-            student_pillar_features=self.student_pillar_features.to(device, non_blocking=True),
-            student_pillar_coords=self.student_pillar_coords.to(device, non_blocking=True),
-            student_pillar_counts=self.student_pillar_counts.to(device, non_blocking=True),
+            student_pillars=self.student_pillars.to(device),
         )
 
 
@@ -88,12 +112,9 @@ class UnlabeledDataset(torch.utils.data.Dataset):
 
 
 def collate_unlabeled(samples: list[UnlabeledSample]) -> UnlabeledBatch:
-    features, coords, counts = collate_pillars([s.student_pillars for s in samples])
     return UnlabeledBatch(
         weak=collate([s.weak for s in samples]),
         student_images=torch.stack([s.student_image for s in samples]),
         student_clouds=[s.student_cloud for s in samples],
-        student_pillar_features=features,
-        student_pillar_coords=coords,
-        student_pillar_counts=counts,
+        student_pillars=collate_pillars([s.student_pillars for s in samples]),
     )

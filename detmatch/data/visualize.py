@@ -10,7 +10,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from detmatch.data.kitti import KittiObjects, objects_to_labels
 from detmatch.files import atomic_write_bytes
-from detmatch.geometry import bev_corners, lidar_to_image
+from detmatch.geometry import bev_corners, lidar_to_image, points_in_image
 from detmatch.structures import Frame, Labels
 
 CLASS_COLOURS = {
@@ -78,9 +78,7 @@ def draw_image_panel(frame: Frame, predictions: Labels | None) -> Image.Image:
     image = frame.image.copy()
     width, height = frame.image_size
     uv, depth = lidar_to_image(frame.points[:, :3], frame.calib)
-    visible = (
-        (depth > 1.0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
-    )
+    visible = points_in_image(frame.points[:, :3], frame.calib, frame.image_size, min_depth=1.0)
     pixels = uv[visible].astype(int)
     colours = _depth_colours(depth[visible], 2.0, 60.0)
     image[pixels[:, 1], pixels[:, 0]] = (

@@ -1,13 +1,15 @@
-"""CenterNet-style camera detector in plain PyTorch.
+"""CenterNet-style camera detector in plain PyTorch (the `Detector2D` contract).
 
 forward(image) -> raw head maps; decode(maps) -> boxes, scores, classes, per-class
-probabilities. Both take and return tensors only, so `Detector2DExport` chains them into one
-ONNX graph. Boxes are in the pixels of the network input; callers scale to the original image.
+probabilities. Both take and return tensors only, so the export graph chains them. Boxes are in
+the pixels of the network input; callers scale to the original image.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -27,12 +29,27 @@ from detmatch.models.common import (
     stage,
     tensor_like,
 )
+from detmatch.models.contract import Decoded, Detector2D
+from detmatch.structures import LabeledBoxes
 
 
-class CenterNet2D(nn.Module):
+@dataclass(frozen=True)
+class CenterNetTargets:
+    """One image's targets on the stride-4 grid (h, w): heatmap (C, h, w) of Gaussian peaks;
+    per object the flat cell index (N,), size (N, 2) w, h in cells and the centre's sub-cell
+    offset (N, 2)."""
+
+    heatmap: np.ndarray
+    index: np.ndarray
+    size: np.ndarray
+    offset: np.ndarray
+
+
+class CenterNet2D(Detector2D):
     """Stride-4 CenterNet: heatmap (C), size (w, h in stride-4 cells) and sub-cell offset heads."""
 
     stride = 4
+    output_names = ("heatmap", "size", "offset")
 
     def __init__(self, config: Detector2DConfig, num_classes: int) -> None:
         super().__init__()
@@ -40,6 +57,7 @@ class CenterNet2D(nn.Module):
             raise ValueError("detector2d.widths and .depths need 4 entries (strides 2, 4, 8, 16)")
         self.config = config
         self.num_classes = num_classes
+        self.score_threshold = config.score_threshold
         widths = config.widths
         self.register_buffer("mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1) * 255.0)
         self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1) * 255.0)
@@ -81,11 +99,10 @@ class CenterNet2D(nn.Module):
         shared = self.smooth(top)
         return self.heatmap_head(shared), self.size_head(shared), self.offset_head(shared)
 
-    def decode(
-        self, heatmap: torch.Tensor, size: torch.Tensor, offset: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def decode(self, outputs: Sequence[torch.Tensor]) -> Decoded:
         """Head maps -> boxes (B, K, 4) xyxy input pixels, scores (B, K), classes (B, K),
         probabilities (B, K, C). Differentiable in the gathered values."""
+        heatmap, size, offset = outputs
         width = heatmap.shape[3]
         scores, classes, pixel, probabilities = heatmap_peaks(
             torch.sigmoid(heatmap), self.config.max_detections
@@ -103,15 +120,12 @@ class CenterNet2D(nn.Module):
         )
         return boxes, scores, classes, probabilities
 
-    def build_targets(
-        self, boxes: np.ndarray, labels: np.ndarray, input_size: tuple[int, int]
-    ) -> dict[str, np.ndarray]:
-        """Ground truth for one image. boxes: (N, 4) xyxy input pixels; labels: (N,) class ids;
-        input_size: (W, H). Returns heatmap (C, h, w), and per-object index / size / offset."""
+    def build_targets(self, labels: LabeledBoxes, input_size: tuple[int, int]) -> CenterNetTargets:
+        """Targets of one image from boxes in input pixels; input_size: (W, H)."""
         out_w, out_h = input_size[0] // self.stride, input_size[1] // self.stride
         heatmap = np.zeros((self.num_classes, out_h, out_w), dtype=np.float32)
         index, box_size, box_offset = [], [], []
-        for box, label in zip(np.asarray(boxes, dtype=np.float64), labels, strict=True):
+        for box, label in zip(labels.boxes, labels.classes, strict=True):
             w, h = (box[2] - box[0]) / self.stride, (box[3] - box[1]) / self.stride
             if w <= 0 or h <= 0:
                 continue
@@ -124,23 +138,23 @@ class CenterNet2D(nn.Module):
             index.append(cell[1] * out_w + cell[0])
             box_size.append((w, h))
             box_offset.append(centre - cell)
-        return {
-            "heatmap": heatmap,
-            "index": np.asarray(index, dtype=np.int64),
-            "size": np.asarray(box_size, dtype=np.float32).reshape(-1, 2),
-            "offset": np.asarray(box_offset, dtype=np.float32).reshape(-1, 2),
-        }
+        return CenterNetTargets(
+            heatmap=heatmap,
+            index=np.asarray(index, dtype=np.int64),
+            size=np.asarray(box_size, dtype=np.float32).reshape(-1, 2),
+            offset=np.asarray(box_offset, dtype=np.float32).reshape(-1, 2),
+        )
 
     def loss(
         self,
-        outputs: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        targets: list[dict[str, np.ndarray]],
+        outputs: Sequence[torch.Tensor],
+        targets: Sequence[CenterNetTargets],
         box_regression: bool = True,
     ) -> dict[str, torch.Tensor]:
         """Losses against per-image targets from build_targets. Without box_regression only the
         classification (heatmap) loss is returned: the pseudo-label loss of DESIGN.md section 3."""
         heatmap, size, offset = outputs
-        target_heatmap = tensor_like(np.stack([t["heatmap"] for t in targets]), heatmap)
+        target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)
         losses = {
             "heatmap": self.config.heatmap_weight * heatmap_focal_loss(heatmap, target_heatmap)
         }
@@ -152,39 +166,26 @@ class CenterNet2D(nn.Module):
 def regression_losses(
     size: torch.Tensor,
     offset: torch.Tensor,
-    targets: list[dict[str, np.ndarray]],
+    targets: Sequence[CenterNetTargets],
     config: Detector2DConfig,
 ) -> dict[str, torch.Tensor]:
     """L1 on size and offset at the object centres, averaged over objects."""
     size_terms, offset_terms = [], []
     for b, target in enumerate(targets):
-        if len(target["index"]) == 0:
+        if len(target.index) == 0:
             continue
-        index = tensor_like(target["index"], size)
+        index = tensor_like(target.index, size)
         predicted_size = size[b].flatten(1)[:, index].t()
         predicted_offset = offset[b].flatten(1)[:, index].t()
         size_terms.append(
-            F.l1_loss(predicted_size, tensor_like(target["size"], size), reduction="sum")
+            F.l1_loss(predicted_size, tensor_like(target.size, size), reduction="sum")
         )
         offset_terms.append(
-            F.l1_loss(predicted_offset, tensor_like(target["offset"], size), reduction="sum")
+            F.l1_loss(predicted_offset, tensor_like(target.offset, size), reduction="sum")
         )
-    count = max(sum(len(t["index"]) for t in targets), 1)
+    count = max(sum(len(t.index) for t in targets), 1)
     zero = size.sum() * 0.0
     return {
         "size": config.size_weight * (sum(size_terms, zero) / count),
         "offset": config.offset_weight * (sum(offset_terms, zero) / count),
     }
-
-
-class Detector2DExport(nn.Module):
-    """Image in, decoded detections out: the graph exported to ONNX."""
-
-    def __init__(self, detector: CenterNet2D) -> None:
-        super().__init__()
-        self.detector = detector
-
-    def forward(
-        self, image: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        return self.detector.decode(*self.detector(image))

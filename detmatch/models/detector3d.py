@@ -1,13 +1,16 @@
-"""PointPillars encoder + CenterPoint-style head in plain PyTorch.
+"""PointPillars encoder + CenterPoint-style head in plain PyTorch (the `Detector3D` contract).
 
 Pillars come from `detmatch.models.pillars.pillarize` (numpy, shared with serving). forward
 takes pillar tensors and returns raw head maps; decode turns maps into LiDAR-frame boxes with
-per-class probabilities. `Detector3DExport` chains both for ONNX.
+per-class probabilities. Single stage: the consistency loss's box gradient goes into the dense
+box regression.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -26,7 +29,9 @@ from detmatch.models.common import (
     stage,
     tensor_like,
 )
+from detmatch.models.contract import CameraView, ConsistencyCandidates, Decoded, Detector3D
 from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid
+from detmatch.structures import LabeledBoxes
 
 # Regression channels: x, y offsets in the cell, z, log l, log w, log h, sin yaw, cos yaw.
 REGRESSION_CHANNELS = 8
@@ -60,8 +65,23 @@ class PillarFeatureNet(nn.Module):
         return (x * valid.unsqueeze(-1).to(x.dtype)).amax(dim=1)
 
 
-class PointPillars3D(nn.Module):
+@dataclass(frozen=True)
+class CenterPointTargets:
+    """One frame's targets on the output grid (h, w): heatmap (C, h, w) of Gaussian peaks;
+    labelled_area (1, h, w) 1 where background is learned; per object the flat cell index
+    (N,) and regression (N, 8): x, y offsets in the cell, z, log l, log w, log h, sin, cos yaw."""
+
+    heatmap: np.ndarray
+    labelled_area: np.ndarray
+    index: np.ndarray
+    regression: np.ndarray
+
+
+class PointPillars3D(Detector3D):
     """Pillar encoder -> BEV pseudo-image -> multi-scale backbone -> CenterPoint heads."""
+
+    consistency_gradient = "the dense head's box regression (single-stage detector)"
+    output_names = ("heatmap", "regression")
 
     def __init__(self, config: Detector3DConfig, num_classes: int) -> None:
         super().__init__()
@@ -69,6 +89,7 @@ class PointPillars3D(nn.Module):
             raise ValueError("detector3d.widths and .depths must have the same length")
         self.config = config
         self.num_classes = num_classes
+        self.score_threshold = config.score_threshold
         self.grid = pillar_grid(config)
         ny, nx = self.grid.shape
         total_stride = 2 ** len(config.widths)
@@ -120,15 +141,15 @@ class PointPillars3D(nn.Module):
         self,
         features: torch.Tensor,
         coords: torch.Tensor,
-        num_points: torch.Tensor,
+        counts: torch.Tensor,
         batch_size: int = 1,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """features (P, M, 9), coords (P, 3) int64 (batch, iy, ix), num_points (P,).
+        """features (P, M, 9), coords (P, 3) int64 (batch, iy, ix), counts (P,).
 
         Returns heatmap logits (B, C, h, w) and regression (B, 8, h, w) on the output grid.
         """
         ny, nx = self.grid.shape
-        encoded = self.encoder(features, num_points)
+        encoded = self.encoder(features, counts)
         flat = coords[:, 0] * (ny * nx) + coords[:, 1] * nx + coords[:, 2]
         canvas = encoded.new_zeros(batch_size * ny * nx, encoded.shape[1])
         canvas = canvas.index_put((flat,), encoded)
@@ -147,17 +168,26 @@ class PointPillars3D(nn.Module):
         shared = self.neck(merged)
         return self.heatmap_head(shared), self.regression_head(shared)
 
-    def decode(
-        self, heatmap: torch.Tensor, regression: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def decode(self, outputs: Sequence[torch.Tensor]) -> Decoded:
         """Head maps -> boxes (B, K, 7) LiDAR x y z l w h yaw, scores (B, K), classes (B, K),
         probabilities (B, K, C). Differentiable in the gathered values."""
+        heatmap, regression = outputs
         width = heatmap.shape[3]
         scores, classes, pixel, probabilities = heatmap_peaks(
             torch.sigmoid(heatmap), self.config.max_detections
         )
         values = gather_at(regression, pixel)
         return self.boxes_from_regression(pixel, values, width), scores, classes, probabilities
+
+    def consistency_candidates(self, outputs: Sequence[torch.Tensor]) -> ConsistencyCandidates:
+        """The top-k peaks of the detached heatmap; their class logits and the boxes decoded
+        from the dense regression keep their gradients."""
+        heatmap, regression = outputs
+        scores, _, pixel, probabilities = heatmap_peaks(
+            torch.sigmoid(heatmap).detach(), self.config.max_detections
+        )
+        boxes = self.boxes_from_regression(pixel, gather_at(regression, pixel), heatmap.shape[3])
+        return ConsistencyCandidates(boxes, gather_at(heatmap, pixel), scores, probabilities)
 
     def boxes_from_regression(
         self, pixel: torch.Tensor, values: torch.Tensor, width: int
@@ -185,20 +215,21 @@ class PointPillars3D(nn.Module):
         return np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
 
     def build_targets(
-        self, boxes: np.ndarray, labels: np.ndarray, labelled_area: np.ndarray | None = None
-    ) -> dict[str, np.ndarray]:
-        """Ground truth for one frame. boxes: (N, 7) LiDAR boxes; labels: (N,) class ids;
-        labelled_area: (h, w) bool of output cells where objects are labelled (KITTI labels
-        only the camera's view); elsewhere the background is not learned. Returns heatmap
-        (C, h, w), the area mask (1, h, w), and per-object flat index and regression (N', 8)."""
+        self, labels: LabeledBoxes, view: CameraView | None = None
+    ) -> CenterPointTargets:
+        """Targets of one frame from LiDAR boxes in the input frame. view: background is
+        learned only in output cells inside the camera's view (KITTI labels only that), or
+        everywhere when None."""
         out_h, out_w = self.output_shape
         cell_x, cell_y = self.cell_size
         x_min, y_min = self.config.point_cloud_range[0], self.config.point_cloud_range[1]
         heatmap = np.zeros((self.num_classes, out_h, out_w), dtype=np.float32)
-        if labelled_area is None:
-            labelled_area = np.ones((out_h, out_w), dtype=bool)
+        labelled_area = np.ones((out_h, out_w), dtype=bool)
+        if view is not None:
+            centres = self.cell_centres()
+            labelled_area = view.contains_bev(centres.reshape(-1, 2)).reshape(out_h, out_w)
         index, regression = [], []
-        for box, label in zip(np.asarray(boxes, dtype=np.float64), labels, strict=True):
+        for box, label in zip(labels.boxes, labels.classes, strict=True):
             centre = np.array([(box[0] - x_min) / cell_x, (box[1] - y_min) / cell_y])
             cell = np.floor(centre).astype(int)
             if not (0 <= cell[0] < out_w and 0 <= cell[1] < out_h) or np.any(box[3:6] <= 0):
@@ -209,56 +240,39 @@ class PointPillars3D(nn.Module):
             regression.append(
                 [*(centre - cell), box[2], *np.log(box[3:6]), math.sin(box[6]), math.cos(box[6])]
             )
-        return {
-            "heatmap": heatmap,
-            "labelled_area": labelled_area[None].astype(np.float32),
-            "index": np.asarray(index, dtype=np.int64),
-            "regression": np.asarray(regression, dtype=np.float32).reshape(-1, REGRESSION_CHANNELS),
-        }
+        return CenterPointTargets(
+            heatmap=heatmap,
+            labelled_area=labelled_area[None].astype(np.float32),
+            index=np.asarray(index, dtype=np.int64),
+            regression=np.asarray(regression, dtype=np.float32).reshape(-1, REGRESSION_CHANNELS),
+        )
 
     def loss(
         self,
-        outputs: tuple[torch.Tensor, torch.Tensor],
-        targets: list[dict[str, np.ndarray]],
+        outputs: Sequence[torch.Tensor],
+        targets: Sequence[CenterPointTargets],
         box_regression: bool = True,
     ) -> dict[str, torch.Tensor]:
         """Focal heatmap loss and L1 regression at object centres (averaged over objects)."""
         heatmap, regression = outputs
-        target_heatmap = tensor_like(np.stack([t["heatmap"] for t in targets]), heatmap)
-        area = tensor_like(np.stack([t["labelled_area"] for t in targets]), heatmap)
+        target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)
+        area = tensor_like(np.stack([t.labelled_area for t in targets]), heatmap)
         focal = heatmap_focal_loss(heatmap, target_heatmap, area)
         losses = {"heatmap": self.config.heatmap_weight * focal}
         if box_regression:
             terms = []
             for b, target in enumerate(targets):
-                if len(target["index"]):
-                    index = tensor_like(target["index"], regression)
+                if len(target.index):
+                    index = tensor_like(target.index, regression)
                     predicted = regression[b].flatten(1)[:, index].t()
                     terms.append(
                         F.l1_loss(
                             predicted,
-                            tensor_like(target["regression"], regression),
+                            tensor_like(target.regression, regression),
                             reduction="sum",
                         )
                     )
-            count = max(sum(len(t["index"]) for t in targets), 1)
+            count = max(sum(len(t.index) for t in targets), 1)
             total = sum(terms, regression.sum() * 0.0) / count
             losses["regression"] = self.config.regression_weight * total
         return losses
-
-
-class Detector3DExport(nn.Module):
-    """Pillars of one frame in, decoded detections out: the graph exported to ONNX."""
-
-    def __init__(self, detector: PointPillars3D) -> None:
-        super().__init__()
-        self.detector = detector
-
-    def forward(
-        self, features: torch.Tensor, coords: torch.Tensor, num_points: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """features (P, M, 9), coords (P, 2) (iy, ix), num_points (P,) -> decoded (batch of 1)."""
-        batch_coords = torch.cat([torch.zeros_like(coords[:, :1]), coords], dim=1)
-        return self.detector.decode(
-            *self.detector(features, batch_coords, num_points, batch_size=1)
-        )

@@ -1,11 +1,15 @@
 """Point cloud -> pillars, in numpy: the one voxelisation used by training and by serving.
 
 It imports no torch, so the labeling service runs exactly this function before onnxruntime.
+`Pillars` is the one record of pillarized input: one frame's numpy arrays from `pillarize`,
+or a batch's tensors (`detmatch.data.dataset.collate_pillars`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -52,11 +56,51 @@ class PillarGrid:
         )
 
 
-def pillarize(points: np.ndarray, grid: PillarGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, 4) LiDAR points -> pillars.
+@dataclass(frozen=True)
+class Pillars:
+    """Pillarized LiDAR input: features (P, M, 9) float32, zero beyond each pillar's points;
+    coords (P, 2) int64 (iy, ix) cells of one frame, or (P, 3) (frame, iy, ix) of a batch;
+    counts (P,) int64 points per pillar in [1, M]; batch_size: frames (1 for one frame).
+
+    numpy arrays for one frame (what `pillarize` returns and the labeler feeds onnxruntime),
+    torch tensors for a batch. The exported 3D graph takes the three arrays of one frame.
+    """
+
+    features: Any
+    coords: Any
+    counts: Any
+    batch_size: int = 1
+
+    def __post_init__(self) -> None:
+        pillars = len(self.features)
+        if len(self.coords) != pillars or len(self.counts) != pillars:
+            raise ValueError(
+                f"Pillars: {pillars} features, {len(self.coords)} coords, {len(self.counts)} counts"
+            )
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    @property
+    def arrays(self) -> tuple[Any, Any, Any]:
+        """(features, coords, counts): the 3D graph's inputs."""
+        return self.features, self.coords, self.counts
+
+    def to(self, device: Any) -> Pillars:
+        """A batch's tensors on device."""
+        return dataclasses.replace(
+            self,
+            features=self.features.to(device, non_blocking=True),
+            coords=self.coords.to(device, non_blocking=True),
+            counts=self.counts.to(device, non_blocking=True),
+        )
+
+
+def pillarize(points: np.ndarray, grid: PillarGrid) -> Pillars:
+    """(N, 4) LiDAR points -> one frame's pillars.
 
     Returns features (P, M, 9) float32 (zero beyond each pillar's points), coords (P, 2) int64
-    (iy, ix) cells, and num_points (P,) int64 in [1, M]. Points outside the range are dropped;
+    (iy, ix) cells, and counts (P,) int64 in [1, M]. Points outside the range are dropped;
     a pillar keeps its first M points in input order; when more than max_pillars are occupied,
     the fullest are kept. Pillars come out in row-major cell order. Deterministic.
     """
@@ -109,4 +153,4 @@ def pillarize(points: np.ndarray, grid: PillarGrid) -> tuple[np.ndarray, np.ndar
     centre_y = (coords[:, 0].astype(np.float32) + 0.5) * grid.pillar_size[1] + y_min
     features[pillar_of_slot, slot, 7] = kept_points[:, 0] - centre_x[pillar_of_slot]
     features[pillar_of_slot, slot, 8] = kept_points[:, 1] - centre_y[pillar_of_slot]
-    return features, coords, kept.astype(np.int64)
+    return Pillars(features, coords, kept.astype(np.int64))

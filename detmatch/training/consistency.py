@@ -8,17 +8,22 @@ pseudo-labels with the same Hungarian cost, and pulled towards them:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from detmatch.data.augment import CloudTransform
-from detmatch.geometry import PROJECTION_MIN_DEPTH
+from detmatch.data.dataset import Sample
+from detmatch.geometry import (
+    CONSISTENCY_MIN_CORNERS,
+    CONSISTENCY_MIN_MEAN_DEPTH,
+    PROJECTION_MIN_DEPTH,
+)
 from detmatch.matching import hungarian_match, matching_cost
-from detmatch.models.common import gather_at, heatmap_peaks, sigmoid_focal_loss
-from detmatch.models.detector3d import PointPillars3D
-from detmatch.structures import Calibration
+from detmatch.models.common import sigmoid_focal_loss
+from detmatch.models.contract import Detector3D
+from detmatch.structures import Calibration, LabeledBoxes
 
 _UNIT = 0.5 * torch.tensor(
     [[1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, -1],
@@ -41,8 +46,8 @@ def project_boxes_torch(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Differentiable DESIGN.md step-1 projection of (N, 7) LiDAR boxes.
 
-    Returns (N, 4) clipped xyxy boxes and (N,) bool validity: at least 3 corners inside the
-    image and a mean corner depth of at least 0.5 m.
+    Returns (N, 4) clipped xyxy boxes and (N,) bool validity, the torch twin of
+    `detmatch.geometry.boxes_usable_for_consistency`.
     """
     width, height = image_size
     corners = box_corners_torch(boxes)
@@ -58,7 +63,9 @@ def project_boxes_torch(
         & (uv[..., 1] >= 0)
         & (uv[..., 1] < height)
     )
-    valid = (inside.sum(dim=1) >= 3) & (depth.mean(dim=1) >= 0.5)
+    valid = (inside.sum(dim=1) >= CONSISTENCY_MIN_CORNERS) & (
+        depth.mean(dim=1) >= CONSISTENCY_MIN_MEAN_DEPTH
+    )
     low = uv.min(dim=1).values
     high = uv.max(dim=1).values
     xyxy = torch.stack(
@@ -94,56 +101,42 @@ class ConsistencyWeights:
     use_box: bool = True
 
 
-@dataclass(frozen=True)
-class TeacherTargets2D:
-    """One frame's matched 2D teacher pseudo-labels, original pixels: boxes (M, 4), classes
-    (M,), probabilities (M, C)."""
-
-    boxes: np.ndarray
-    classes: np.ndarray
-    probabilities: np.ndarray
-
-
 def consistency_loss(
-    model_3d: PointPillars3D,
-    heatmap: torch.Tensor,
-    regression: torch.Tensor,
-    transforms: list[CloudTransform],
-    calibs: list[Calibration],
-    image_sizes: list[tuple[int, int]],
-    targets: list[TeacherTargets2D],
+    model_3d: Detector3D,
+    outputs: Sequence[torch.Tensor],
+    samples: Sequence[Sample],
+    clouds: Sequence[CloudTransform],
+    targets: Sequence[LabeledBoxes],
     weights: ConsistencyWeights,
     tau_hung: float,
 ) -> tuple[torch.Tensor, int]:
-    """Consistency loss over a batch of the 3D student's raw outputs (B, C, h, w), (B, 8, h, w).
+    """Consistency loss over a batch of the 3D student's raw outputs on the strong views.
 
-    Returns the loss (mean over matched pairs, 0 when none) and the number of matched pairs.
+    samples: the frames' weak samples (calibration, original image size); clouds: un-augmented
+    -> student frame; targets: each frame's matched 2D teacher boxes (original pixels) with
+    their probabilities. The student's candidates come from the detector's
+    `consistency_candidates`. Returns the loss (mean over matched pairs, 0 when none) and the
+    number of matched pairs.
     """
-    config = model_3d.config
-    width = heatmap.shape[3]
-    probabilities = torch.sigmoid(heatmap)
-    scores, _, pixel, peak_probabilities = heatmap_peaks(
-        probabilities.detach(), config.max_detections
-    )
-    logits = gather_at(heatmap, pixel)  # (B, K, C), differentiable
-    boxes = model_3d.boxes_from_regression(pixel, gather_at(regression, pixel), width)
+    candidates = model_3d.consistency_candidates(outputs)
     class_terms, l1_terms, giou_terms = [], [], []
     for b, target in enumerate(targets):
-        keep = scores[b] > config.score_threshold
-        if len(target.boxes) == 0 or not bool(keep.any()):
+        keep = candidates.scores[b] > model_3d.score_threshold
+        if len(target) == 0 or not bool(keep.any()):
             continue
-        unaugmented = transforms[b].invert_boxes_torch(boxes[b][keep])
-        projected, valid = project_boxes_torch(unaugmented, calibs[b], image_sizes[b])
+        calib, image_size = samples[b].calib, samples[b].image_transform.original_size
+        unaugmented = clouds[b].invert_boxes_torch(candidates.boxes[b][keep])
+        projected, valid = project_boxes_torch(unaugmented, calib, image_size)
         if not bool(valid.any()):
             continue
-        projected, frame_logits = projected[valid], logits[b][keep][valid]
-        frame_probabilities = peak_probabilities[b][keep][valid]
+        projected, frame_logits = projected[valid], candidates.logits[b][keep][valid]
+        frame_probabilities = candidates.probabilities[b][keep][valid]
         cost = matching_cost(
             projected.detach().cpu().double().numpy(),
             frame_probabilities.cpu().double().numpy(),
             target.boxes,
             target.probabilities,
-            image_sizes[b],
+            image_size,
         )
         rows, cols = hungarian_match(cost, tau_hung)
         if rows.size == 0:
@@ -156,13 +149,13 @@ def consistency_loss(
             onehot[torch.arange(len(rows), device=rows_t.device), classes] = 1.0
             class_terms.append(sigmoid_focal_loss(frame_logits[rows_t], onehot).sum(dim=1))
         if weights.use_box:
-            w, h = image_sizes[b]
+            w, h = image_size
             scale = projected.new_tensor([w, h, w, h])
             teacher = projected.new_tensor(target.boxes)[cols_t]
             l1_terms.append((projected[rows_t] / scale - teacher / scale).abs().mean(dim=1))
             giou_terms.append(1.0 - giou_torch(projected[rows_t], teacher))
     pairs = sum(len(t) for t in class_terms) if class_terms else sum(len(t) for t in l1_terms)
-    loss = heatmap.sum() * 0.0
+    loss = outputs[0].sum() * 0.0
     if class_terms:
         loss = loss + weights.class_weight * torch.cat(class_terms).mean()
     if l1_terms:

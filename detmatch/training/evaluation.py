@@ -9,8 +9,7 @@ import torch
 from detmatch.data.dataset import FrameDataset, collate
 from detmatch.eval.kitti import evaluate
 from detmatch.inference import detections_2d_to_objects, detections_3d_to_objects, predict_batch
-from detmatch.models.detector2d import CenterNet2D
-from detmatch.models.detector3d import PointPillars3D
+from detmatch.models.contract import Detector2D, Detector3D
 
 MODERATE = 1
 
@@ -23,8 +22,8 @@ def headline(results: dict[str, Any], metric: str, classes: tuple[str, ...]) -> 
 
 
 def evaluate_detectors(
-    model_2d: CenterNet2D,
-    model_3d: PointPillars3D,
+    model_2d: Detector2D,
+    model_3d: Detector3D,
     dataset: FrameDataset,
     classes: tuple[str, ...],
     batch_size: int = 4,

@@ -13,24 +13,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
+from detmatch.checkpoints import checkpoint_path, list_checkpoints, load_checkpoint
 from detmatch.config import ExperimentConfig, config_to_dict
 from detmatch.data.dataset import Batch, FrameDataset, Sample, collate
-from detmatch.geometry import points_in_image
-from detmatch.models.detector2d import CenterNet2D
-from detmatch.models.detector3d import PointPillars3D, pillar_grid
-from detmatch.training.checkpoint import (
-    checkpoint_path,
-    list_checkpoints,
-    load_checkpoint,
-    restore_rng_state,
-    rng_state,
-    save_checkpoint,
-)
+from detmatch.models.build import build_detectors
+from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
+from detmatch.training.checkpoint import restore_rng_state, rng_state, save_checkpoint
 from detmatch.training.distributed import (
     DistributedContext,
     StepSampler,
@@ -40,13 +32,6 @@ from detmatch.training.distributed import (
 from detmatch.training.evaluation import evaluate_detectors
 
 CHECKPOINT_FORMAT = 1
-
-
-def build_detectors(config: ExperimentConfig) -> tuple[CenterNet2D, PointPillars3D]:
-    num_classes = len(config.data.classes)
-    return CenterNet2D(config.detector2d, num_classes), PointPillars3D(
-        config.detector3d, num_classes
-    )
 
 
 def build_optimizers(
@@ -79,17 +64,17 @@ class TrainState:
     """Everything a run needs to continue. model_* are the trained (student) models; teacher_*
     exist in teacher-student runs and are then the run's output."""
 
-    model_2d: CenterNet2D
-    model_3d: PointPillars3D
+    model_2d: Detector2D
+    model_3d: Detector3D
     optimizer_2d: torch.optim.Optimizer
     optimizer_3d: torch.optim.Optimizer
     step: int = 0
     metrics: dict[str, Any] = field(default_factory=dict)
-    teacher_2d: CenterNet2D | None = None
-    teacher_3d: PointPillars3D | None = None
+    teacher_2d: Detector2D | None = None
+    teacher_3d: Detector3D | None = None
 
     @property
-    def output_models(self) -> tuple[CenterNet2D, PointPillars3D]:
+    def output_models(self) -> tuple[Detector2D, Detector3D]:
         """The models a run delivers: the teachers if there are any, else the trained models."""
         if self.teacher_2d is not None and self.teacher_3d is not None:
             return self.teacher_2d, self.teacher_3d
@@ -146,41 +131,19 @@ def clip_and_step(
     return float(norm)
 
 
-# Height (LiDAR z, metres) at which output cells are tested against the camera's view.
-VIEW_TEST_HEIGHT = -0.8
-
-
-def labelled_area(model_3d: PointPillars3D, sample: Sample) -> np.ndarray:
-    """(h, w) bool: output cells inside the camera's horizontal field of view, where KITTI-style
-    labels exist. Cells are tested in the un-augmented frame (the flip undone)."""
-    centres = model_3d.cell_centres()
-    xy = centres.reshape(-1, 2).copy()
-    if sample.flipped:
-        xy[:, 1] = -xy[:, 1]
-    points = np.column_stack([xy, np.full(len(xy), VIEW_TEST_HEIGHT)])
-    size = sample.image_transform.original_size
-    return points_in_image(points, sample.calib, size, check_rows=False).reshape(centres.shape[:2])
-
-
 def ground_truth_targets(
-    model_2d: CenterNet2D, model_3d: PointPillars3D, samples: list[Sample]
-) -> tuple[list[dict[str, np.ndarray]], list[dict[str, np.ndarray]]]:
+    model_2d: Detector2D, model_3d: Detector3D, samples: list[Sample]
+) -> tuple[list[Any], list[Any]]:
     """Per-sample 2D and 3D training targets from the samples' labels (3D background learned
     only inside the camera's view)."""
-    targets_2d = [
-        model_2d.build_targets(s.boxes_2d, s.classes_2d, s.image_transform.input_size)
-        for s in samples
-    ]
-    targets_3d = [
-        model_3d.build_targets(s.boxes_3d, s.classes_3d, labelled_area(model_3d, s))
-        for s in samples
-    ]
+    targets_2d = [model_2d.build_targets(s.gt_2d, s.image_transform.input_size) for s in samples]
+    targets_3d = [model_3d.build_targets(s.gt_3d, s.camera_view) for s in samples]
     return targets_2d, targets_3d
 
 
 def supervised_losses(
-    model_2d: CenterNet2D,
-    model_3d: PointPillars3D,
+    model_2d: Detector2D,
+    model_3d: Detector3D,
     forward_2d: torch.nn.Module,
     forward_3d: torch.nn.Module,
     batch: Batch,
@@ -189,10 +152,7 @@ def supervised_losses(
     modules to call; model_* own the losses and targets."""
     targets_2d, targets_3d = ground_truth_targets(model_2d, model_3d, batch.samples)
     losses_2d = model_2d.loss(forward_2d(batch.images), targets_2d)
-    outputs_3d = forward_3d(
-        batch.pillar_features, batch.pillar_coords, batch.pillar_counts, batch_size=len(batch)
-    )
-    return losses_2d, model_3d.loss(outputs_3d, targets_3d)
+    return losses_2d, model_3d.loss(forward_pillars(forward_3d, batch.pillars), targets_3d)
 
 
 class SupervisedTrainer:
@@ -215,7 +175,7 @@ class SupervisedTrainer:
             devices = [self.device] if self.device.type == "cuda" else None
             self.forward_2d = DistributedDataParallel(model_2d, device_ids=devices)
             self.forward_3d = DistributedDataParallel(model_3d, device_ids=devices)
-        grid = pillar_grid(config.detector3d)
+        grid = model_3d.grid
         data = config.data
         self.train_set = FrameDataset(
             data.root, data.train_split, data.classes, data.image_size, grid,
@@ -233,7 +193,7 @@ class SupervisedTrainer:
         return True
 
     def train_step(self, batch: Batch) -> dict[str, float]:
-        state, train = self.state, self.config.train
+        state = self.state
         batch = batch.to(self.device)
         state.model_2d.train()
         state.model_3d.train()
@@ -241,23 +201,25 @@ class SupervisedTrainer:
             state.model_2d, state.model_3d, self.forward_2d, self.forward_3d, batch
         )
         loss_2d, loss_3d = sum(losses_2d.values()), sum(losses_3d.values())
-        state.optimizer_2d.zero_grad(set_to_none=True)
-        state.optimizer_3d.zero_grad(set_to_none=True)
-        (loss_2d + loss_3d).backward()
-        factor = warmup_factor(state.step, train.warmup_steps)
-        grad_2d = clip_and_step(
-            state.optimizer_2d, state.model_2d, train.grad_clip, train.lr_2d * factor
-        )
-        grad_3d = clip_and_step(
-            state.optimizer_3d, state.model_3d, train.grad_clip, train.lr_3d * factor
-        )
-        state.step += 1
-        record = {f"loss_2d/{k}": v.item() for k, v in losses_2d.items()}
+        record = self.optimise(loss_2d + loss_3d)
+        record.update({f"loss_2d/{k}": v.item() for k, v in losses_2d.items()})
         record.update({f"loss_3d/{k}": v.item() for k, v in losses_3d.items()})
         record.update(loss_2d=loss_2d.item(), loss_3d=loss_3d.item())
-        record.update(grad_norm_2d=grad_2d, grad_norm_3d=grad_3d)
-        record.update(lr_2d=train.lr_2d * factor, lr_3d=train.lr_3d * factor)
         return record
+
+    def optimise(self, loss: torch.Tensor) -> dict[str, float]:
+        """One optimiser step of both detectors on a loss (warm-up, clipping); the step count
+        advances. Returns the gradient norms and learning rates."""
+        state, train = self.state, self.config.train
+        state.optimizer_2d.zero_grad(set_to_none=True)
+        state.optimizer_3d.zero_grad(set_to_none=True)
+        loss.backward()
+        factor = warmup_factor(state.step, train.warmup_steps)
+        lr_2d, lr_3d = train.lr_2d * factor, train.lr_3d * factor
+        grad_2d = clip_and_step(state.optimizer_2d, state.model_2d, train.grad_clip, lr_2d)
+        grad_3d = clip_and_step(state.optimizer_3d, state.model_3d, train.grad_clip, lr_3d)
+        state.step += 1
+        return {"grad_norm_2d": grad_2d, "grad_norm_3d": grad_3d, "lr_2d": lr_2d, "lr_3d": lr_3d}
 
     def loader(
         self, dataset: torch.utils.data.Dataset, collate_fn, seed: int

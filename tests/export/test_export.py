@@ -6,7 +6,7 @@ import onnx
 import pytest
 
 from detmatch.data.kitti import KittiDataset
-from detmatch.training.predict import load_detectors
+from detmatch.models.build import load_detectors
 from export.cli import main as export_main
 from export.onnx_export import export_checkpoint
 from export.parity import ParityError, PeakTies, Tolerance, check_parity, compare_decoded
@@ -77,7 +77,8 @@ def test_onnxruntime_matches_pytorch_on_other_frames(
     exported_repository, trained_checkpoint, synth_root
 ):
     """Parity again, on frames the export did not check, including a tiny odd-sized image."""
-    config, model_2d, model_3d, _ = load_detectors(trained_checkpoint)
+    loaded = load_detectors(trained_checkpoint)
+    config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
     version = exported_repository / "000001"
     frames = [("synth", KittiDataset(synth_root).load_frame(i)) for i in ("000003", "000004")]
     report = check_parity(

@@ -5,10 +5,14 @@ import pytest
 import torch
 
 from detmatch.config import load_config
+from detmatch.data.dataset import collate_pillars
 from detmatch.models.common import heatmap_peaks
-from detmatch.models.detector2d import CenterNet2D, Detector2DExport
-from detmatch.models.detector3d import Detector3DExport, PointPillars3D
+from detmatch.models.contract import forward_pillars
+from detmatch.models.detector2d import CenterNet2D
+from detmatch.models.detector3d import PointPillars3D
 from detmatch.models.pillars import pillarize
+from detmatch.structures import LabeledBoxes
+from export.graphs import PillarDetector3DGraph
 from tests.conftest import REPO
 
 TINY = load_config(REPO / "configs" / "tiny.toml")
@@ -40,16 +44,16 @@ def test_2d_forward_backward_and_shapes(detector_2d):
     assert size.shape == offset.shape == (2, 2, height // 4, width // 4)
     targets = [
         detector_2d.build_targets(
-            np.array([[40.0, 20.0, 90.0, 60.0]]), np.array([0]), (width, height)
+            LabeledBoxes(np.array([[40.0, 20.0, 90.0, 60.0]]), np.array([0])), (width, height)
         ),
-        detector_2d.build_targets(np.zeros((0, 4)), np.zeros(0, dtype=np.int64), (width, height)),
+        detector_2d.build_targets(LabeledBoxes.empty(4), (width, height)),
     ]
     losses = detector_2d.loss((heatmap, size, offset), targets)
     sum(losses.values()).backward()
     assert all(torch.isfinite(v) for v in losses.values())
     assert all(p.grad is not None for p in detector_2d.parameters() if p.requires_grad)
     with torch.no_grad():
-        boxes, scores, classes, probabilities = Detector2DExport(detector_2d.eval())(images)
+        boxes, scores, classes, probabilities = detector_2d.eval().decode(detector_2d(images))
     k = TINY.detector2d.max_detections
     assert boxes.shape == (2, k, 4) and scores.shape == classes.shape == (2, k)
     assert probabilities.shape == (2, k, NUM_CLASSES)
@@ -60,15 +64,15 @@ def test_2d_forward_backward_and_shapes(detector_2d):
 def test_2d_decoding_recovers_a_box_from_hand_set_heads(detector_2d):
     width, height = TINY.data.image_size
     box = np.array([[101.0, 30.5, 161.0, 70.5]])
-    target = detector_2d.build_targets(box, np.array([2]), (width, height))
+    target = detector_2d.build_targets(LabeledBoxes(box, np.array([2])), (width, height))
     out_w = width // 4
-    heatmap = torch.from_numpy(logit(target["heatmap"]))[None]
+    heatmap = torch.from_numpy(logit(target.heatmap))[None]
     size = torch.zeros(1, 2, height // 4, out_w)
     offset = torch.zeros(1, 2, height // 4, out_w)
-    cell_y, cell_x = divmod(int(target["index"][0]), out_w)
-    size[0, :, cell_y, cell_x] = torch.from_numpy(target["size"][0])
-    offset[0, :, cell_y, cell_x] = torch.from_numpy(target["offset"][0])
-    boxes, scores, classes, probabilities = detector_2d.decode(heatmap, size, offset)
+    cell_y, cell_x = divmod(int(target.index[0]), out_w)
+    size[0, :, cell_y, cell_x] = torch.from_numpy(target.size[0])
+    offset[0, :, cell_y, cell_x] = torch.from_numpy(target.offset[0])
+    boxes, scores, classes, probabilities = detector_2d.decode((heatmap, size, offset))
     assert classes[0, 0] == 2 and scores[0, 0] == pytest.approx(1.0, abs=1e-5)
     np.testing.assert_allclose(boxes[0, 0].numpy(), box[0], atol=1e-4)
     assert scores[0, 1] < 0.5  # one object, one peak
@@ -80,38 +84,35 @@ def test_3d_forward_backward_and_shapes(detector_3d):
         [rng.uniform([0, -25, -2], [50, 25, 0.5], size=(4000, 3)), rng.uniform(0, 1, (4000, 1))],
         axis=1,
     ).astype(np.float32)
-    features, coords, counts = pillarize(points, detector_3d.grid)
-    batch_coords = np.concatenate([np.zeros((len(coords), 1), dtype=np.int64), coords], axis=1)
-    heatmap, regression = detector_3d(
-        torch.from_numpy(features), torch.from_numpy(batch_coords), torch.from_numpy(counts)
-    )
+    pillars = pillarize(points, detector_3d.grid)
+    heatmap, regression = forward_pillars(detector_3d, collate_pillars([pillars]))
     out_h, out_w = detector_3d.output_shape
     assert heatmap.shape == (1, NUM_CLASSES, out_h, out_w)
     assert regression.shape == (1, 8, out_h, out_w)
     target = detector_3d.build_targets(
-        np.array([[20.0, 3.0, -0.9, 3.9, 1.6, 1.5, 0.4]]), np.array([0])
+        LabeledBoxes(np.array([[20.0, 3.0, -0.9, 3.9, 1.6, 1.5, 0.4]]), np.array([0]))
     )
     losses = detector_3d.loss((heatmap, regression), [target])
     sum(losses.values()).backward()
     assert all(torch.isfinite(v) for v in losses.values())
     assert all(p.grad is not None for p in detector_3d.parameters())
     with torch.no_grad():
-        boxes, scores, classes, probabilities = Detector3DExport(detector_3d.eval())(
-            torch.from_numpy(features), torch.from_numpy(coords), torch.from_numpy(counts)
+        boxes, scores, classes, probabilities, *_ = PillarDetector3DGraph(detector_3d.eval())(
+            *(torch.from_numpy(a) for a in pillars.arrays)
         )
     k = TINY.detector3d.max_detections
-    assert boxes.shape == (1, k, 7) and probabilities.shape == (1, k, NUM_CLASSES)
+    assert boxes.shape == (k, 7) and probabilities.shape == (k, NUM_CLASSES)
 
 
 def test_3d_decoding_recovers_a_box_from_hand_set_heads(detector_3d):
     box = np.array([[23.7, -4.2, -0.85, 3.9, 1.6, 1.52, 2.5]])
-    target = detector_3d.build_targets(box, np.array([1]))
+    target = detector_3d.build_targets(LabeledBoxes(box, np.array([1])))
     out_h, out_w = detector_3d.output_shape
-    heatmap = torch.from_numpy(logit(target["heatmap"]))[None]
+    heatmap = torch.from_numpy(logit(target.heatmap))[None]
     regression = torch.zeros(1, 8, out_h, out_w)
-    cell_y, cell_x = divmod(int(target["index"][0]), out_w)
-    regression[0, :, cell_y, cell_x] = torch.from_numpy(target["regression"][0])
-    boxes, scores, classes, _ = detector_3d.decode(heatmap, regression)
+    cell_y, cell_x = divmod(int(target.index[0]), out_w)
+    regression[0, :, cell_y, cell_x] = torch.from_numpy(target.regression[0])
+    boxes, scores, classes, _ = detector_3d.decode((heatmap, regression))
     assert classes[0, 0] == 1 and scores[0, 0] == pytest.approx(1.0, abs=1e-5)
     np.testing.assert_allclose(boxes[0, 0, :6].numpy(), box[0, :6], atol=1e-4)
     assert math.remainder(float(boxes[0, 0, 6]) - box[0, 6], 2 * math.pi) == pytest.approx(
@@ -139,7 +140,7 @@ def test_pillarize_keeps_points_and_features():
         ],
         dtype=np.float32,
     )
-    features, coords, counts = pillarize(points, grid)
+    features, coords, counts = pillarize(points, grid).arrays
     assert sorted(counts.tolist()) == [1, 2]
     assert counts.sum() == 3  # the point behind the sensor is outside the range
     first = int(np.argmax(counts))
@@ -153,10 +154,10 @@ def test_pillarize_keeps_points_and_features():
 
 
 def test_3d_detector_handles_an_empty_point_cloud(detector_3d):
-    features, coords, counts = pillarize(np.zeros((0, 4), dtype=np.float32), detector_3d.grid)
-    assert features.shape == (0, TINY.detector3d.max_points_per_pillar, 9)
+    pillars = pillarize(np.zeros((0, 4), dtype=np.float32), detector_3d.grid)
+    assert pillars.features.shape == (0, TINY.detector3d.max_points_per_pillar, 9)
     with torch.no_grad():
-        boxes, scores, _, _ = Detector3DExport(detector_3d.eval())(
-            torch.from_numpy(features), torch.from_numpy(coords), torch.from_numpy(counts)
+        boxes, scores, *_ = PillarDetector3DGraph(detector_3d.eval())(
+            *(torch.from_numpy(a) for a in pillars.arrays)
         )
-    assert boxes.shape == (1, TINY.detector3d.max_detections, 7) and torch.isfinite(scores).all()
+    assert boxes.shape == (TINY.detector3d.max_detections, 7) and torch.isfinite(scores).all()

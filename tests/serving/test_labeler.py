@@ -10,9 +10,8 @@ import pytest
 from detmatch.data.dataset import collate, make_sample
 from detmatch.data.kitti import KittiDataset
 from detmatch.inference import predict_batch
-from detmatch.models.detector3d import pillar_grid
+from detmatch.models.build import load_detectors
 from detmatch.pseudo_labels import MatchedLabels, Provenance, match_detections
-from detmatch.training.predict import load_detectors
 from export.parity import Tolerance, check_parity
 from serving.labeler import Labeler
 from serving.repository import MODEL_3D_FILE, RepositoryError
@@ -66,9 +65,10 @@ def test_labels_equal_the_pytorch_pipeline(
     heatmaps are nearly flat, so float rounding can swap which of two near-tied peaks is
     detected; such frames must pass the export's parity check (the difference is an excused
     near tie), and they are counted, not compared."""
-    config, model_2d, model_3d, _ = load_detectors(trained_checkpoint)
+    loaded = load_detectors(trained_checkpoint)
+    config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
     labeler = Labeler.from_repository(exported_repository)
-    grid = pillar_grid(config.detector3d)
+    grid = model_3d.grid
     tau_hung = overrides.get("tau_hung", -1.5)
     tau_outside = overrides.get("tau_3d_outside_view", 0.3)
     provenances, tie_affected = [], []

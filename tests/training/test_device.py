@@ -6,8 +6,8 @@ import json
 import pytest
 import torch
 
+from detmatch.checkpoints import list_checkpoints, load_checkpoint
 from detmatch.cli import main
-from detmatch.training.checkpoint import list_checkpoints, load_checkpoint
 from tests.conftest import REPO
 
 TINY = REPO / "configs" / "tiny.toml"

@@ -149,7 +149,7 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
         and sum(r["pseudo_labels_2d"] for r in steps) > 0
     )
     assert sum(r["consistency_pairs"] for r in steps) > 0
-    from detmatch.training.checkpoint import list_checkpoints, load_checkpoint
+    from detmatch.checkpoints import list_checkpoints, load_checkpoint
 
     before = load_checkpoint(list_checkpoints(tmp_path / "pre")[-1])
     after = load_checkpoint(list_checkpoints(tmp_path / "ssl")[-1])

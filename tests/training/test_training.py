@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
+from detmatch.checkpoints import list_checkpoints, load_checkpoint
 from detmatch.cli import main
 from detmatch.config import ConfigError, load_config
 from detmatch.data.kitti import KittiDataset, read_objects
 from detmatch.geometry import pairwise_iou_2d
-from detmatch.training.checkpoint import list_checkpoints, load_checkpoint
+from detmatch.models.build import load_detectors
 from detmatch.training.distributed import StepSampler, init_distributed
-from detmatch.training.predict import load_detectors
 from detmatch.training.trainer import SupervisedTrainer
 from tests.conftest import REPO
 
@@ -198,7 +198,8 @@ def test_two_process_torchrun_keeps_ranks_identical(synth_root, tmp_path):
         if "loss_2d" in l
     ]
     assert steps == [1, 2, 3, 4, 5, 6]
-    config, model_2d, _, _ = load_detectors(tmp_path)
+    loaded = load_detectors(tmp_path)
+    config, model_2d = loaded.config, loaded.model_2d
     assert_same_weights(model_2d.state_dict(), rank0["model_2d"])
     fresh = SupervisedTrainer(
         config.replace("data", root=str(synth_root)), tmp_path / "fresh", init_distributed()
@@ -252,20 +253,15 @@ def test_overfits_a_few_frames(synth_root, tmp_path):
 def test_3d_background_is_learned_only_inside_the_camera_view(synth_root):
     from detmatch.data.dataset import FrameDataset
     from detmatch.models.common import heatmap_focal_loss
-    from detmatch.models.detector3d import PointPillars3D, pillar_grid
-    from detmatch.training.trainer import labelled_area
+    from detmatch.models.detector3d import PointPillars3D
 
     config = load_config(TINY)
     model = PointPillars3D(config.detector3d, 3)
     dataset = FrameDataset(
-        synth_root,
-        "train",
-        config.data.classes,
-        config.data.image_size,
-        pillar_grid(config.detector3d),
+        synth_root, "train", config.data.classes, config.data.image_size, model.grid
     )
     sample = dataset[0]
-    area = labelled_area(model, sample)
+    area = model.build_targets(sample.gt_3d, sample.camera_view).labelled_area[0] > 0
     centres = model.cell_centres()
     ahead = np.abs(centres[..., 1]) < 0.2 * centres[..., 0]
     beside = np.abs(centres[..., 1]) > 1.5 * centres[..., 0]  # beyond KITTI's ~81 degree view
