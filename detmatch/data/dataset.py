@@ -16,8 +16,7 @@ import torch.nn.functional as F
 
 from detmatch.data.augment import CloudTransform
 from detmatch.data.kitti import KittiDataset
-from detmatch.geometry import project_boxes_to_image
-from detmatch.models.contract import CameraView
+from detmatch.geometry import bev_cells_in_camera_view, project_boxes_to_image
 from detmatch.models.pillars import PillarGrid, Pillars, pillarize
 from detmatch.structures import Calibration, Detections, Frame, LabeledBoxes
 
@@ -86,6 +85,23 @@ def image_to_tensor(image: np.ndarray, transform: ImageTransform) -> torch.Tenso
             align_corners=False,
         )[0]
     return tensor
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """Where a frame's 3D labels exist: the camera's view (a `LabelledArea` of the 3D
+    detector's contract). cloud maps the un-augmented LiDAR frame to the detector's input."""
+
+    calib: Calibration
+    image_size: tuple[int, int]
+    cloud: CloudTransform
+
+    def contains_bev(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) x, y metres in the detector's frame -> (N,) bool, by
+        `geometry.bev_cells_in_camera_view` in the un-augmented frame."""
+        points = np.column_stack([xy, np.zeros(len(xy))])
+        unaugmented = self.cloud.invert_points(points)[:, :2]
+        return bev_cells_in_camera_view(unaugmented, self.calib, self.image_size)
 
 
 @dataclass

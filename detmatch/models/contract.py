@@ -30,16 +30,14 @@ from __future__ import annotations
 import abc
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import torch
 from torch import nn
 
-from detmatch.data.augment import CloudTransform
-from detmatch.geometry import bev_cells_in_camera_view
 from detmatch.models.pillars import PillarGrid, Pillars
-from detmatch.structures import Calibration, Detections, LabeledBoxes
+from detmatch.structures import Detections, LabeledBoxes
 
 Decoded = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -97,21 +95,13 @@ class Detector2D(nn.Module, abc.ABC):
         return _detections(self.decode(outputs), self.score_threshold)
 
 
-@dataclass(frozen=True)
-class CameraView:
-    """Where a frame's 3D labels exist: the camera's view. cloud maps the un-augmented LiDAR
-    frame to the detector's input frame (the augmentation the frame went through)."""
-
-    calib: Calibration
-    image_size: tuple[int, int]
-    cloud: CloudTransform
+class LabelledArea(Protocol):
+    """Where a frame's 3D labels are complete, so background may be learned (KITTI-style labels
+    cover only the camera's view; `detmatch.data.dataset.CameraView` implements it)."""
 
     def contains_bev(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) x, y metres in the detector's frame -> (N,) bool, by
-        `geometry.bev_cells_in_camera_view` in the un-augmented frame."""
-        points = np.column_stack([xy, np.zeros(len(xy))])
-        unaugmented = self.cloud.invert_points(points)[:, :2]
-        return bev_cells_in_camera_view(unaugmented, self.calib, self.image_size)
+        """(N, 2) x, y metres in the detector's input frame -> (N,) bool."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -151,7 +141,7 @@ class Detector3D(nn.Module, abc.ABC):
     def decode(self, outputs: Sequence[torch.Tensor]) -> Decoded: ...
 
     @abc.abstractmethod
-    def build_targets(self, labels: LabeledBoxes, view: CameraView | None = None) -> Any:
+    def build_targets(self, labels: LabeledBoxes, view: LabelledArea | None = None) -> Any:
         """labels: boxes in the input frame; view: where background may be learned (None:
         everywhere)."""
 

@@ -29,7 +29,7 @@ from detmatch.models.common import (
     stage,
     tensor_like,
 )
-from detmatch.models.contract import CameraView, ConsistencyCandidates, Decoded, Detector3D
+from detmatch.models.contract import ConsistencyCandidates, Decoded, Detector3D, LabelledArea
 from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid
 from detmatch.structures import LabeledBoxes
 
@@ -215,7 +215,7 @@ class PointPillars3D(Detector3D):
         return np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
 
     def build_targets(
-        self, labels: LabeledBoxes, view: CameraView | None = None
+        self, labels: LabeledBoxes, view: LabelledArea | None = None
     ) -> CenterPointTargets:
         """Targets of one frame from LiDAR boxes in the input frame. view: background is
         learned only in output cells inside the camera's view (KITTI labels only that), or
