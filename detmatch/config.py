@@ -33,6 +33,8 @@ BOXES_2D_SOURCES = ("annotated", "projected")
 # Where training runs: "auto" (the first CUDA GPU when torch sees one, else the CPU), "cpu"
 # or "cuda".
 DEVICES = ("auto", "cpu", "cuda")
+# The forward passes' precision (detmatch.training.precision).
+PRECISIONS = ("auto", "fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -118,6 +120,15 @@ class TrainConfig:
     log_every: int = 10
     seed: int = 0
     flip_probability: float = 0.5
+    # "auto" (bf16 autocast where the CPU or GPU computes bf16 natively), "fp32" or "bf16":
+    # the forward passes' precision; losses, decoding, matching and the EMA stay fp32.
+    precision: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ConfigError(
+                f"[train] precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}"
+            )
 
 
 METHODS = ("labeled-only", "confidence", "detmatch")

@@ -13,20 +13,29 @@ from detmatch.data.kitti import KittiObjects, write_objects
 from detmatch.data.results import result_objects_2d, result_objects_3d
 from detmatch.models.build import load_detectors
 from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
+from detmatch.precision import autocast, fp32
 from detmatch.structures import Calibration, Detections
 
 
 @torch.no_grad()
 def predict_batch(
-    model_2d: Detector2D, model_3d: Detector3D, batch: Batch
+    model_2d: Detector2D,
+    model_3d: Detector3D,
+    batch: Batch,
+    autocast_dtype: torch.dtype | None = None,
 ) -> list[tuple[Detections, Detections]]:
     """Both detectors on a batch, in eval mode; detections above each detector's score
-    threshold, mapped back to the un-augmented frame (original pixels; LiDAR frame)."""
+    threshold, mapped back to the un-augmented frame (original pixels; LiDAR frame).
+    autocast_dtype: the forward passes' precision (None: fp32, as deployed); decoding is fp32."""
     model_2d.eval()
     model_3d.eval()
-    batch = batch.to(next(model_3d.parameters()).device)
-    frames_2d = model_2d.detect(model_2d(batch.images))
-    frames_3d = model_3d.detect(forward_pillars(model_3d, batch.pillars))
+    device = next(model_3d.parameters()).device
+    batch = batch.to(device)
+    with autocast(device, autocast_dtype):
+        outputs_2d = fp32(model_2d(batch.images))
+        outputs_3d = fp32(forward_pillars(model_3d, batch.pillars))
+    frames_2d = model_2d.detect(outputs_2d)
+    frames_3d = model_3d.detect(outputs_3d)
     return [
         (
             sample.image_transform.invert_detections(detections_2d),

@@ -20,7 +20,7 @@ from detmatch.config import ExperimentConfig
 from detmatch.data.dataset import Batch, FrameDataset
 from detmatch.data.unlabeled import UnlabeledBatch, UnlabeledDataset, collate_unlabeled
 from detmatch.inference import predict_batch
-from detmatch.models.contract import Detector2D, Detector3D, forward_pillars, split_outputs
+from detmatch.models.contract import Detector2D, Detector3D, split_outputs
 from detmatch.training.consistency import ConsistencyWeights, consistency_loss
 from detmatch.training.distributed import DistributedContext
 from detmatch.training.ema import ema_decay, ema_update
@@ -104,7 +104,9 @@ class SemiSupervisedTrainer(SupervisedTrainer):
         student_2d, student_3d = state.model_2d, state.model_3d
 
         # 1. Teachers predict on the weak views; detections come back un-augmented.
-        detections = predict_batch(state.teacher_2d, state.teacher_3d, unlabeled.weak)
+        detections = predict_batch(
+            state.teacher_2d, state.teacher_3d, unlabeled.weak, self.autocast_dtype
+        )
 
         # 2. Pseudo-labels by the method's rule, then moved into the students' frames.
         pseudo = [
@@ -117,8 +119,8 @@ class SemiSupervisedTrainer(SupervisedTrainer):
         student_2d.train()
         student_3d.train()
         images, pillars = unlabeled.student_inputs(labeled)
-        labeled_2d, unlabeled_2d = split_outputs(self.forward_2d(images), n)
-        labeled_3d, unlabeled_3d = split_outputs(forward_pillars(self.forward_3d, pillars), n)
+        labeled_2d, unlabeled_2d = split_outputs(self.run_2d(images), n)
+        labeled_3d, unlabeled_3d = split_outputs(self.run_3d(pillars), n)
         targets_2d, targets_3d = ground_truth_targets(student_2d, student_3d, labeled.samples)
         losses = {
             "supervised_2d": student_2d.loss(labeled_2d, targets_2d),

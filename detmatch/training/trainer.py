@@ -22,6 +22,8 @@ from detmatch.config import ExperimentConfig, config_to_dict
 from detmatch.data.dataset import Batch, FrameDataset, Sample, collate
 from detmatch.models.build import build_detectors
 from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
+from detmatch.models.pillars import Pillars
+from detmatch.precision import autocast, autocast_dtype, fp32
 from detmatch.training.checkpoint import restore_rng_state, rng_state, save_checkpoint
 from detmatch.training.distributed import (
     DistributedContext,
@@ -141,20 +143,6 @@ def ground_truth_targets(
     return targets_2d, targets_3d
 
 
-def supervised_losses(
-    model_2d: Detector2D,
-    model_3d: Detector3D,
-    forward_2d: torch.nn.Module,
-    forward_3d: torch.nn.Module,
-    batch: Batch,
-) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-    """Ground-truth losses of both detectors on a batch. forward_* are the (possibly DDP-wrapped)
-    modules to call; model_* own the losses and targets."""
-    targets_2d, targets_3d = ground_truth_targets(model_2d, model_3d, batch.samples)
-    losses_2d = model_2d.loss(forward_2d(batch.images), targets_2d)
-    return losses_2d, model_3d.loss(forward_pillars(forward_3d, batch.pillars), targets_3d)
-
-
 class SupervisedTrainer:
     """Labeled-only training of both detectors with periodic evaluation and checkpoints."""
 
@@ -166,6 +154,7 @@ class SupervisedTrainer:
         self.context = context
         torch.manual_seed(config.train.seed)
         self.device = context.device
+        self.autocast_dtype = autocast_dtype(config.train.precision, self.device)
         model_2d, model_3d = (model.to(self.device) for model in build_detectors(config))
         optimizer_2d, optimizer_3d = build_optimizers(config, model_2d, model_3d)
         self.state = TrainState(model_2d, model_3d, optimizer_2d, optimizer_3d)
@@ -197,15 +186,26 @@ class SupervisedTrainer:
         batch = batch.to(self.device)
         state.model_2d.train()
         state.model_3d.train()
-        losses_2d, losses_3d = supervised_losses(
-            state.model_2d, state.model_3d, self.forward_2d, self.forward_3d, batch
-        )
+        targets_2d, targets_3d = ground_truth_targets(state.model_2d, state.model_3d, batch.samples)
+        losses_2d = state.model_2d.loss(self.run_2d(batch.images), targets_2d)
+        losses_3d = state.model_3d.loss(self.run_3d(batch.pillars), targets_3d)
         loss_2d, loss_3d = sum(losses_2d.values()), sum(losses_3d.values())
         record = self.optimise(loss_2d + loss_3d)
         record.update({f"loss_2d/{k}": v.item() for k, v in losses_2d.items()})
         record.update({f"loss_3d/{k}": v.item() for k, v in losses_3d.items()})
         record.update(loss_2d=loss_2d.item(), loss_3d=loss_3d.item())
         return record
+
+    def run_2d(self, images: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The trained 2D detector's raw outputs (through DDP, in the configured precision),
+        in fp32."""
+        with autocast(self.device, self.autocast_dtype):
+            return fp32(self.forward_2d(images))
+
+    def run_3d(self, pillars: Pillars) -> tuple[torch.Tensor, ...]:
+        """The trained 3D detector's raw outputs, like run_2d."""
+        with autocast(self.device, self.autocast_dtype):
+            return fp32(forward_pillars(self.forward_3d, pillars))
 
     def optimise(self, loss: torch.Tensor) -> dict[str, float]:
         """One optimiser step of both detectors on a loss (warm-up, clipping); the step count

@@ -161,3 +161,46 @@ def test_3d_detector_handles_an_empty_point_cloud(detector_3d):
             *(torch.from_numpy(a) for a in pillars.arrays)
         )
     assert boxes.shape == (TINY.detector3d.max_detections, 7) and torch.isfinite(scores).all()
+
+
+def test_pillar_encoder_training_path_equals_the_padded_layout(detector_3d):
+    """Training runs the encoder on real points only; it must compute what the padded layout
+    (inference, export) computes in training mode: outputs, gradients and BatchNorm's running
+    statistics, which include the padding slots. Both are compared with a float64 reference."""
+    import copy
+
+    rng = np.random.default_rng(1)
+    points = np.concatenate(
+        [rng.uniform([0, -25, -2], [50, 25, 0.5], size=(6000, 3)), rng.uniform(0, 1, (6000, 1))],
+        axis=1,
+    ).astype(np.float32)
+    pillars = collate_pillars([pillarize(points, detector_3d.grid)] * 2)
+    assert int(pillars.counts.sum()) < 0.5 * pillars.features.shape[0] * pillars.features.shape[1]
+    encoder = detector_3d.encoder.train()
+    with torch.no_grad():
+        encoder.norm.weight.uniform_(0.5, 1.5)
+        encoder.norm.bias.uniform_(-0.5, 0.5)
+    reference = copy.deepcopy(encoder).double()
+    points_path = copy.deepcopy(encoder)
+    expected = reference._forward_padded(pillars.features.double(), pillars.counts)
+    expected.sum().backward()
+    got = points_path(pillars.features, pillars.counts)  # training mode: the points path
+    got.sum().backward()
+    np.testing.assert_allclose(got.detach().double(), expected.detach(), rtol=1e-4, atol=1e-4)
+    for name in ("linear.weight", "norm.weight", "norm.bias"):
+        grad = dict(points_path.named_parameters())[name].grad.double()
+        want = dict(reference.named_parameters())[name].grad
+        np.testing.assert_allclose(grad, want, rtol=1e-3, atol=1e-3 * float(want.abs().max()))
+    for name in ("running_mean", "running_var"):
+        np.testing.assert_allclose(
+            getattr(points_path.norm, name).double(), getattr(reference.norm, name), rtol=1e-4
+        )
+    assert int(points_path.norm.num_batches_tracked) == 1
+    # Inference takes the padded layout: the eval-mode result of the same weights agrees.
+    points_path.eval()
+    reference.eval()
+    np.testing.assert_allclose(
+        points_path(pillars.features, pillars.counts).detach().double(),
+        reference(pillars.features.double(), pillars.counts).detach(),
+        rtol=1e-4, atol=1e-4,
+    )  # fmt: skip

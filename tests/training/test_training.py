@@ -279,3 +279,24 @@ def test_3d_background_is_learned_only_inside_the_camera_view(synth_root):
     assert heatmap_focal_loss(
         confident_outside, torch.from_numpy(target)
     ) > 100 * heatmap_focal_loss(quiet, torch.from_numpy(target))
+
+
+def test_a_bf16_training_step_agrees_with_fp32(synth_root, tmp_path):
+    """The same first step under [train] precision fp32 and bf16: the forward passes run in
+    bfloat16 (autocast), the losses come back fp32 and agree within bf16's precision."""
+    records = {}
+    for precision in ("fp32", "bf16"):
+        config = load_config(TINY).replace("data", root=str(synth_root))
+        config = config.replace("train", precision=precision, flip_probability=0.0)
+        trainer = SupervisedTrainer(config, tmp_path / precision, init_distributed())
+        assert trainer.autocast_dtype == (torch.bfloat16 if precision == "bf16" else None)
+        batch = next(trainer.batches())
+        records[precision] = trainer.train_step(batch)
+        outputs = trainer.run_2d(batch.images)
+        assert all(o.dtype == torch.float32 for o in outputs)
+    fp32, bf16 = records["fp32"], records["bf16"]
+    for key in ("loss_2d", "loss_3d"):
+        assert bf16[key] == pytest.approx(fp32[key], rel=0.05), key
+    assert bf16["loss_2d"] != fp32["loss_2d"]  # bf16 really ran
+    with pytest.raises(ConfigError, match=r"\[train\] precision must be one of"):
+        load_config(TINY).replace("train", precision="fp16")
