@@ -5,7 +5,7 @@ Everything else about the package is in pyproject.toml."""
 import importlib.util
 from pathlib import Path
 
-from setuptools import setup
+from setuptools import find_packages, setup
 from setuptools.command.build_py import build_py
 
 ROOT = Path(__file__).resolve().parent
@@ -22,4 +22,8 @@ class BuildPyWithStubs(build_py):
         proto.generate(force=True, target=Path(self.build_lib) / "serving" / "_generated")
 
 
-setup(cmdclass={"build_py": BuildPyWithStubs})
+setup(
+    packages=[*find_packages(include=["detmatch*", "export*", "serving*"]), "detmatch.configs"],
+    package_dir={"detmatch.configs": "configs"},
+    cmdclass={"build_py": BuildPyWithStubs},
+)

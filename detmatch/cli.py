@@ -4,12 +4,60 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from detmatch.config import DEVICES
+from detmatch.config import DEVICES, packaged_configs
+from detmatch.data.kitti import SUBSETS
+
+# `detmatch serve --host` when not given: the Docker image sets 0.0.0.0 (all interfaces).
+HOST_ENV = "DETMATCH_HOST"
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's default in --help, except where there is none (None, False, "", []) or
+    the help text already states it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        help_text = action.help or ""
+        default = action.default
+        if (
+            default is None
+            or default is False
+            or default is argparse.SUPPRESS
+            or (isinstance(default, str | list) and not default)
+            or "default" in help_text
+        ):
+            return help_text
+        return super()._get_help_string(action)
+
+
+def package_version() -> str:
+    """The installed distribution's version (the source tree's when not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("detmatch")
+    except PackageNotFoundError:
+        from detmatch import __version__
+
+        return __version__
+
+
+def show_defaults(parser: argparse.ArgumentParser) -> None:
+    """HelpFormatter for the parser and all its subcommands, however deeply nested."""
+    parser.formatter_class = HelpFormatter
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                show_defaults(subparser)
+
+
+def add_version_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--version", action="version", version=f"{parser.prog} {package_version()}")
 
 
 def _synth(args: argparse.Namespace) -> int:
@@ -43,7 +91,7 @@ def _show(args: argparse.Namespace) -> int:
     from detmatch.data.kitti import KittiDataset, read_objects
     from detmatch.data.visualize import save_frame_picture
 
-    dataset = KittiDataset(Path(args.data))
+    dataset = KittiDataset(Path(args.data), args.subset)
     frame = dataset.load_frame(args.frame)
     predictions = None
     if args.predictions:
@@ -57,7 +105,12 @@ def _eval(args: argparse.Namespace) -> int:
     from detmatch.data.kitti import read_image_set
     from detmatch.eval.kitti import evaluate_dirs, format_table
 
-    ids = read_image_set(args.ids_file)
+    if args.all:
+        ids = sorted(path.stem for path in Path(args.gt_dir).glob("*.txt"))
+        if not ids:
+            raise FileNotFoundError(f"no label files (ID.txt) in {args.gt_dir}")
+    else:
+        ids = read_image_set(args.ids_file)
     classes = [c.strip() for c in args.classes.split(",") if c.strip()]
     results = evaluate_dirs(Path(args.gt_dir), Path(args.pred_dir), ids, classes)
     print(format_table(results))
@@ -67,13 +120,26 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train(args: argparse.Namespace) -> int:
-    from detmatch.config import load_config
-    from detmatch.training.distributed import init_distributed, shutdown_distributed
-    from detmatch.training.semi_supervised import SemiSupervisedTrainer
-    from detmatch.training.trainer import SupervisedTrainer
+def refuse_existing_run(out: Path, resume: bool) -> None:
+    """A run directory that exists and is not empty is another run: training into it would
+    append to its metrics.jsonl and overwrite its checkpoints. Only --resume may continue it."""
+    if resume or not out.exists():
+        return
+    if not out.is_dir():
+        raise FileExistsError(f"--out {out} exists and is not a directory")
+    if any(out.iterdir()):
+        raise FileExistsError(
+            f"--out {out} already holds a run (it is not empty): pass --resume to continue it, "
+            "or choose a new run directory"
+        )
 
-    config = load_config(args.config)
+
+def _train(args: argparse.Namespace) -> int:
+    from detmatch.config import apply_overrides, load_config
+
+    # Before any process of a torchrun job writes (init_distributed is their rendezvous).
+    refuse_existing_run(Path(args.out), args.resume)
+    config = apply_overrides(load_config(args.config), args.set)
     if args.data:
         config = config.replace("data", root=args.data)
     if args.steps is not None:
@@ -87,6 +153,10 @@ def _train(args: argparse.Namespace) -> int:
             f"--method {config.ssl.method} starts from pre-trained weights: pass --pretrained "
             "CKPT (a labeled-only run) or set [ssl] pretrained"
         )
+    from detmatch.training.distributed import init_distributed, shutdown_distributed
+    from detmatch.training.semi_supervised import SemiSupervisedTrainer
+    from detmatch.training.trainer import SupervisedTrainer
+
     context = init_distributed(args.device)
     try:
         trainer_type = SupervisedTrainer
@@ -107,10 +177,17 @@ def _headline(metrics: dict) -> dict:
     return {k: v for k, v in metrics.items() if not k.startswith("full_")}
 
 
+def _frames(args: argparse.Namespace):
+    from detmatch.data.selection import FrameSelection
+
+    ids_file = Path(args.ids_file) if args.ids_file else None
+    return FrameSelection(args.split, ids_file, args.all, args.subset)
+
+
 def _predict(args: argparse.Namespace) -> int:
     from detmatch.inference import predict_split
 
-    count = predict_split(Path(args.checkpoint), Path(args.data), args.split, Path(args.out))
+    count = predict_split(Path(args.checkpoint), Path(args.data), _frames(args), Path(args.out))
     print(f"wrote predictions for {count} frames to {args.out}/3d and {args.out}/2d")
     return 0
 
@@ -119,8 +196,9 @@ def _label(args: argparse.Namespace) -> int:
     from serving.labeler import Labeler
     from serving.offline import label_split
 
+    frames = _frames(args)
     labeler = Labeler.from_repository(Path(args.repository), args.version)
-    summary = label_split(labeler, Path(args.data), args.split, Path(args.out), args.tau_hung)
+    summary = label_split(labeler, Path(args.data), frames, Path(args.out), args.tau_hung)
     print(
         f"labeled {summary.frames} frames with model version {summary.model_version}: "
         f"{summary.labels} labels ({summary.matched} matched 2D-3D, {summary.lidar_only} "
@@ -144,11 +222,27 @@ def _serve(args: argparse.Namespace) -> int:
         tls_key=Path(args.tls_key) if args.tls_key else None,
         token=os.environ.get(args.token_env) or None,
         metrics_port=args.metrics_port,
+        metrics_address=args.metrics_host or args.host,
         poll_s=args.poll_s,
         grace_s=args.grace_s,
     )
     serve(Path(args.repository), Path(args.store), config, shard=args.shard)
     return 0
+
+
+def _health(args: argparse.Namespace) -> int:
+    from serving.health_check import wait_until_serving
+
+    status = wait_until_serving(
+        args.target,
+        args.wait_s,
+        service=args.service,
+        timeout_s=args.timeout_s,
+        root_certificates=Path(args.ca_cert).read_bytes() if args.ca_cert else None,
+        server_name=args.server_name,
+    )
+    print(status)
+    return 0 if status == "SERVING" else 1
 
 
 def _store_export(args: argparse.Namespace) -> int:
@@ -159,16 +253,32 @@ def _store_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_frame_selection(parser: argparse.ArgumentParser) -> None:
+    """--split | --ids-file | --all, and --subset: which frames of --data to read."""
+    frames = parser.add_mutually_exclusive_group(required=True)
+    frames.add_argument("--split", help="ImageSets split: the ids in DATA/ImageSets/SPLIT.txt")
+    frames.add_argument("--ids-file", help="a file of frame ids, one a line (no ImageSets needed)")
+    frames.add_argument(
+        "--all", action="store_true", help="every frame with an image (PNG or JPEG) in image_2/"
+    )
+    parser.add_argument(
+        "--subset",
+        choices=SUBSETS,
+        help="DATA's subset directory to read (default: training/ if DATA has one, else testing/)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="detmatch", description="Joint 2D-3D semi-supervised detection (DetMatch)."
     )
+    add_version_option(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     synth = commands.add_parser("synth", help="generate a synthetic paired camera + LiDAR data set")
     synth.add_argument("--out", required=True, help="output directory (KITTI layout)")
     synth.add_argument("--frames", type=int, required=True, help="number of frames")
-    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     synth.add_argument("--resolution", choices=("full", "half"), default="half",
                        help="full = 1242x375 (KITTI), half = 621x188")  # fmt: skip
     synth.add_argument("--workers", type=int, default=1, help="parallel worker processes")
@@ -182,23 +292,44 @@ def build_parser() -> argparse.ArgumentParser:
     )
     split.add_argument("--data", required=True, help="KITTI-layout data set root")
     split.add_argument("--fraction", type=float, required=True, help="labeled fraction in (0, 1)")
-    split.add_argument("--seed", type=int, default=0)
+    split.add_argument("--seed", type=int, default=0, help="random seed of the labeled subset")
     split.add_argument("--source", default="train", help="ImageSets split to divide")
     split.set_defaults(handler=_split)
 
     show = commands.add_parser("show", help="render a frame: image with 2D boxes + bird's-eye view")
     show.add_argument("--data", required=True, help="KITTI-layout data set root")
+    show.add_argument("--subset", choices=SUBSETS, default="training",
+                      help="DATA's subset directory")  # fmt: skip
     show.add_argument("--frame", required=True, help="frame id, e.g. 000001")
     show.add_argument("--out", required=True, help="output PNG")
     show.add_argument("--predictions", help="directory of KITTI result files to overlay (dashed)")
     show.set_defaults(handler=_show)
 
     train = commands.add_parser("train", help="train the 2D and 3D detectors")
-    train.add_argument("--config", required=True, help="TOML config (see configs/)")
-    train.add_argument("--data", help="data set root; overrides [data] root")
-    train.add_argument("--out", required=True, help="run directory: checkpoints, metrics.jsonl")
     train.add_argument(
-        "--resume", action="store_true", help="continue from the run's latest checkpoint"
+        "--config",
+        required=True,
+        help=f"TOML config file, or a packaged config's name: {', '.join(packaged_configs())}",
+    )
+    train.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override any config key, e.g. train.steps=100, data.image_size=[320,96], "
+        "ssl.method=detmatch (repeatable; values are TOML literals, bare words are strings; "
+        "--data, --steps, --method and --pretrained apply after them)",
+    )
+    train.add_argument("--data", help="data set root; overrides [data] root")
+    train.add_argument(
+        "--out",
+        required=True,
+        help="run directory: checkpoints, metrics.jsonl; must be new or empty unless --resume",
+    )
+    train.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its latest checkpoint (a new run if it has none)",
     )
     train.add_argument("--steps", type=int, help="override [train] steps")
     train.add_argument(
@@ -218,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
     predict = commands.add_parser("predict", help="write KITTI result files of both detectors")
     predict.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
     predict.add_argument("--data", required=True, help="KITTI-layout data set root")
-    predict.add_argument("--split", required=True, help="ImageSets split, e.g. val")
+    _add_frame_selection(predict)
     predict.add_argument("--out", required=True, help="output directory (gets 3d/ and 2d/)")
     predict.set_defaults(handler=_predict)
 
@@ -228,7 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--repository", required=True, help="model repository (detmatch-export)")
     label.add_argument("--version", help="model version (default: the newest promoted one)")
     label.add_argument("--data", required=True, help="KITTI-layout data set root")
-    label.add_argument("--split", required=True, help="ImageSets split, e.g. train_unlabeled")
+    _add_frame_selection(label)
     label.add_argument("--out", required=True, help="output directory (gets 3d/, 2d/, labels/)")
     label.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
     label.set_defaults(handler=_label)
@@ -237,7 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--repository", required=True, help="model repository (detmatch-export)")
     serve.add_argument("--store", required=True, help="label store directory")
     serve.add_argument("--port", type=int, default=50051, help="0 picks a free port")
-    serve.add_argument("--host", default="127.0.0.1", help="address to bind, e.g. 0.0.0.0")
+    serve.add_argument("--host", default=os.environ.get(HOST_ENV) or "127.0.0.1",
+                       help=f"address to bind, e.g. 0.0.0.0 for all interfaces (default: "
+                       f"${HOST_ENV}, else 127.0.0.1)")  # fmt: skip
     serve.add_argument("--workers", type=int, default=4, help="concurrent requests")
     serve.add_argument("--shard", default=socket.gethostname().split(".")[0] or "default",
                        help="this replica's label store shard (default: host name)")  # fmt: skip
@@ -247,9 +380,26 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--token-env", default="DETMATCH_TOKEN",
                        help="variable holding the bearer token (unset: no auth)")  # fmt: skip
     serve.add_argument("--metrics-port", type=int, help="Prometheus /metrics port (off if unset)")
+    serve.add_argument("--metrics-host", help="address of /metrics (default: --host's)")
     serve.add_argument("--poll-s", type=float, default=2.0, help="model repository poll period")
     serve.add_argument("--grace-s", type=float, default=30.0, help="drain time after SIGTERM")
     serve.set_defaults(handler=_serve)
+
+    health = commands.add_parser(
+        "health", help="ask a server's gRPC health service: exit 0 if SERVING, else 1"
+    )
+    health.add_argument("--target", default="127.0.0.1:50051", help="server host:port")
+    health.add_argument("--service", default="", help="service name ('': the whole server)")
+    health.add_argument("--timeout-s", type=float, default=5.0, help="deadline of each check")
+    health.add_argument(
+        "--wait-s",
+        type=float,
+        default=0.0,
+        help="keep asking until SERVING or this many seconds have passed",
+    )
+    health.add_argument("--ca-cert", help="PEM certificate to verify a TLS server")
+    health.add_argument("--server-name", help="the name the TLS certificate holds")
+    health.set_defaults(handler=_health)
 
     store = commands.add_parser("store", help="the label store of `detmatch serve`")
     store_commands = store.add_subparsers(dest="store_command", required=True, metavar="ACTION")
@@ -263,10 +413,14 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("eval", help="KITTI object-benchmark evaluation")
     evaluate.add_argument("--gt-dir", required=True, help="directory of KITTI label files")
     evaluate.add_argument("--pred-dir", required=True, help="directory of KITTI result files")
-    evaluate.add_argument("--ids-file", required=True, help="ImageSets file of frame ids")
-    evaluate.add_argument("--classes", default="Car,Pedestrian,Cyclist")
+    frames = evaluate.add_mutually_exclusive_group(required=True)
+    frames.add_argument("--ids-file", help="ImageSets file of frame ids")
+    frames.add_argument("--all", action="store_true",
+                        help="every frame with a label file in --gt-dir")  # fmt: skip
+    evaluate.add_argument("--classes", default="Car,Pedestrian,Cyclist", help="classes to score")
     evaluate.add_argument("--json", help="write the results as JSON here")
     evaluate.set_defaults(handler=_eval)
+    show_defaults(parser)
     return parser
 
 
@@ -274,7 +428,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.handler(args)
-    except (FileNotFoundError, ValueError) as error:
+    except (FileNotFoundError, FileExistsError, ValueError) as error:
         print(f"detmatch {args.command}: error: {error}", file=sys.stderr)
         return 2
 

@@ -1,19 +1,26 @@
 """Experiment configuration: frozen dataclasses loaded from TOML; unknown keys are errors.
 
 A config file has one table per section below ([data], [detector2d], [detector3d], [train],
-[ssl]);
-every key is optional and defaults to the values here. Loss weights and learning rates are
-named fields, never string lookups.
+[ssl]); every key is optional and defaults to the values here. Loss weights and learning rates
+are named fields, never string lookups. Every section checks its values' ranges when it is
+built (`__post_init__`), so a file, a `--set section.key=value` override and code all get the
+same ConfigError naming the section and the key.
+
+`load_config` takes a path or the name of a config shipped inside the package
+(`detmatch.configs`, the repository's configs/ directory): `load_config("tiny")`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
+import math
 import sys
 import typing
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from detmatch.constants import SCORE_THRESHOLD, TAU_2D, TAU_3D, TAU_HUNG
 from detmatch.records import RecordError, coerce, to_plain
@@ -26,6 +33,61 @@ else:  # pragma: no cover - Python 3.10
 
 class ConfigError(ValueError):
     """A config file with an unknown key, a wrong type or an invalid value."""
+
+
+class _Checks:
+    """Range checks of one section's values; a failure is a ConfigError naming [section] key.
+    Tuple values are checked element by element. Floats must also be finite."""
+
+    def __init__(self, record: Any) -> None:
+        self.record = record
+        self.section = record.SECTION
+
+    def fail(self, key: str, expected: str) -> None:
+        value = getattr(self.record, key)
+        raise ConfigError(f"[{self.section}] {key} must be {expected}, got {_show(value)}")
+
+    def _each(self, keys: Iterable[str], ok, expected: str) -> None:
+        for key in keys:
+            value = getattr(self.record, key)
+            values = value if isinstance(value, tuple) else (value,)
+            if not all(_finite(v) and ok(v) for v in values):
+                self.fail(key, expected)
+
+    def positive(self, *keys: str) -> None:
+        self._each(keys, lambda v: v > 0, "> 0")
+
+    def non_negative(self, *keys: str) -> None:
+        self._each(keys, lambda v: v >= 0, ">= 0")
+
+    def probability(self, *keys: str) -> None:
+        self._each(keys, lambda v: 0 <= v <= 1, "in [0, 1]")
+
+    def below_one(self, *keys: str) -> None:
+        self._each(keys, lambda v: 0 <= v < 1, "in [0, 1)")
+
+    def finite(self, *keys: str) -> None:
+        self._each(keys, lambda v: True, "a finite number")
+
+    def one_of(self, key: str, choices: Sequence[str]) -> None:
+        if getattr(self.record, key) not in choices:
+            self.fail(key, f"one of {', '.join(choices)}")
+
+    def name(self, *keys: str) -> None:
+        """Names used in file names and KITTI rows: non-empty, no whitespace or '/'."""
+        for key in keys:
+            value = getattr(self.record, key)
+            values = value if isinstance(value, tuple) else (value,)
+            if not all(v and not any(c.isspace() or c == "/" for c in v) for v in values):
+                self.fail(key, "non-empty names without whitespace or '/'")
+
+
+def _finite(value: Any) -> bool:
+    return not isinstance(value, float) or math.isfinite(value)
+
+
+def _show(value: Any) -> str:
+    return repr(list(value)) if isinstance(value, tuple) else repr(value)
 
 
 BOXES_2D_SOURCES = ("annotated", "projected")
@@ -54,12 +116,20 @@ class DataConfig:
     # Evaluation always uses the annotated boxes.
     train_boxes_2d: str = "annotated"
 
+    SECTION: ClassVar[str] = "data"
+
     def __post_init__(self) -> None:
-        if self.train_boxes_2d not in BOXES_2D_SOURCES:
-            raise ConfigError(
-                f"[data] train_boxes_2d must be one of {', '.join(BOXES_2D_SOURCES)}, "
-                f"got {self.train_boxes_2d!r}"
-            )
+        check = _Checks(self)
+        check.one_of("train_boxes_2d", BOXES_2D_SOURCES)
+        if not self.root:
+            check.fail("root", "a directory")
+        check.name("train_split", "val_split", "classes")
+        if not self.classes:
+            check.fail("classes", "a list of at least one class")
+        if len(set(self.classes)) != len(self.classes):
+            check.fail("classes", "distinct names")
+        check.positive("image_size")
+        check.non_negative("num_workers")
 
 
 @dataclass(frozen=True)
@@ -76,6 +146,24 @@ class Detector2DConfig:
     heatmap_weight: float = 1.0
     size_weight: float = 0.1
     offset_weight: float = 1.0
+
+    SECTION: ClassVar[str] = "detector2d"
+
+    def __post_init__(self) -> None:
+        check = _Checks(self)
+        check.name("type")
+        check.positive("widths", "head_width", "max_detections")
+        check.non_negative("depths", "heatmap_weight", "size_weight", "offset_weight")
+        if not self.widths:
+            check.fail("widths", "at least one stage width")
+        if len(self.depths) != len(self.widths):
+            check.fail("depths", f"a list of one entry per stage ({len(self.widths)}, as widths)")
+        check.probability("score_threshold")
+
+    @property
+    def stride(self) -> int:
+        """The backbone's total stride (each stage halves the image): input sizes divide by it."""
+        return 2 ** len(self.widths)
 
 
 @dataclass(frozen=True)
@@ -99,6 +187,29 @@ class Detector3DConfig:
     score_threshold: float = SCORE_THRESHOLD
     heatmap_weight: float = 1.0
     regression_weight: float = 0.25
+
+    SECTION: ClassVar[str] = "detector3d"
+
+    def __post_init__(self) -> None:
+        check = _Checks(self)
+        check.name("type")
+        check.finite("point_cloud_range")
+        check.positive("pillar_size", "max_points_per_pillar", "max_pillars", "pillar_channels")
+        check.positive("widths", "head_width", "out_stride", "max_detections")
+        check.non_negative("depths", "heatmap_weight", "regression_weight")
+        if not self.widths:
+            check.fail("widths", "at least one stage width")
+        if len(self.depths) != len(self.widths):
+            check.fail("depths", f"a list of one entry per stage ({len(self.widths)}, as widths)")
+        check.probability("score_threshold")
+        bounds = self.point_cloud_range
+        if len(bounds) != 6 or not all(bounds[i + 3] > bounds[i] for i in range(3)):
+            check.fail("point_cloud_range", "[x_min, y_min, z_min, x_max, y_max, z_max], max > min")
+        for axis in (0, 1):  # the pillar grid covers the x and y ranges in whole cells
+            extent = bounds[axis + 3] - bounds[axis]
+            cells = extent / self.pillar_size[axis]
+            if abs(cells - round(cells)) > 1e-6:
+                check.fail("pillar_size", f"a divisor of the {'xy'[axis]} range ({extent:g} m)")
 
 
 @dataclass(frozen=True)
@@ -129,6 +240,16 @@ class TrainConfig:
             raise ConfigError(
                 f"[train] precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}"
             )
+
+    SECTION: ClassVar[str] = "train"
+
+    def __post_init__(self) -> None:
+        check = _Checks(self)
+        check.positive("steps", "batch_size", "lr_2d", "lr_3d", "grad_clip")
+        check.positive("eval_every", "checkpoint_every", "log_every")
+        check.non_negative("weight_decay_2d", "weight_decay_3d", "warmup_steps", "seed")
+        check.below_one("momentum_2d", "betas_3d")
+        check.probability("flip_probability")
 
 
 METHODS = ("labeled-only", "confidence", "detmatch")
@@ -164,11 +285,24 @@ class SemiSupervisedConfig:
     student_scale: tuple[float, float] = (0.95, 1.05)
     photometric: bool = True
 
+    SECTION: ClassVar[str] = "ssl"
+
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ConfigError(
-                f"[ssl] method must be one of {', '.join(METHODS)}, got {self.method!r}"
-            )
+        check = _Checks(self)
+        check.one_of("method", METHODS)
+        check.name("unlabeled_split")
+        check.probability("tau_3d", "tau_2d")
+        check.finite("tau_hung")
+        check.non_negative("pseudo_label_weight", "detmatch_2d_pseudo_weight")
+        check.non_negative(
+            "consistency_class_weight", "consistency_l1_weight", "consistency_giou_weight"
+        )
+        check.positive("ema_offset")
+        check.below_one("ema_max_decay")
+        check.non_negative("student_rotation")
+        check.positive("student_scale")
+        if self.student_scale[0] > self.student_scale[1]:
+            check.fail("student_scale", "[low, high] with low <= high")
 
 
 @dataclass(frozen=True)
@@ -179,12 +313,17 @@ class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     ssl: SemiSupervisedConfig = field(default_factory=SemiSupervisedConfig)
 
+    def __post_init__(self) -> None:
+        stride = self.detector2d.stride
+        if any(size % stride for size in self.data.image_size):
+            raise ConfigError(
+                f"[data] image_size must be multiples of {stride}, the 2D backbone's stride "
+                f"(2 ** len([detector2d] widths)), got {list(self.data.image_size)}"
+            )
+
     def replace(self, section: str, **changes: Any) -> ExperimentConfig:
         """A copy with some fields of one section changed (validated like a file)."""
         current = dataclasses.asdict(getattr(self, section))
-        unknown = set(changes) - set(current)
-        if unknown:
-            raise ConfigError(f"[{section}] has no key {sorted(unknown)[0]!r}")
         current.update(changes)
         section_type = type(getattr(self, section))
         return dataclasses.replace(self, **{section: _build(section_type, current, section)})
@@ -218,17 +357,87 @@ def config_from_dict(raw: dict[str, Any]) -> ExperimentConfig:
     return ExperimentConfig(**built)
 
 
-def load_config(path: str | Path) -> ExperimentConfig:
-    """Read a TOML config; unknown sections or keys raise ConfigError naming them."""
-    path = Path(path)
+# The configs shipped inside the package: the repository's configs/ directory, installed as
+# this package (setup.py maps it), so `--config tiny` works from a wheel as from a checkout.
+PACKAGED_CONFIGS = "detmatch.configs"
+
+
+def packaged_configs() -> list[str]:
+    """Names of the configs shipped inside the package, for `load_config(name)`."""
+    return sorted(
+        entry.name.removesuffix(".toml")
+        for entry in importlib.resources.files(PACKAGED_CONFIGS).iterdir()
+        if entry.name.endswith(".toml")
+    )
+
+
+def read_config_text(name_or_path: str | Path) -> tuple[str, str]:
+    """(TOML text, where it came from) of a config file, or else of the packaged config of
+    that name ("tiny" or "tiny.toml"). A path that exists always wins over a packaged name."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path.read_text(), str(path)
+    name = str(name_or_path).removesuffix(".toml")
+    available = packaged_configs()
+    if path.name == str(name_or_path) and name in available:
+        resource = importlib.resources.files(PACKAGED_CONFIGS) / f"{name}.toml"
+        return resource.read_text(), f"packaged config {name!r}"
+    raise FileNotFoundError(
+        f"no config file {str(name_or_path)!r} and no packaged config of that name; "
+        f"packaged configs: {', '.join(available)}"
+    )
+
+
+def load_config(name_or_path: str | Path) -> ExperimentConfig:
+    """Read a TOML config file, or a packaged config by name (`packaged_configs()`); unknown
+    sections or keys and out-of-range values raise ConfigError naming them."""
+    text, where = read_config_text(name_or_path)
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: {error}") from None
+        raise ConfigError(f"{where}: {error}") from None
     try:
         return config_from_dict(raw)
     except ConfigError as error:
-        raise ConfigError(f"{path}: {error}") from None
+        raise ConfigError(f"{where}: {error}") from None
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """`section.key=value` -> (section, key, value). The value is read as a TOML literal
+    (`100`, `0.02`, `[320, 96]`, `true`, `"val"`); text that is not one is taken as a plain
+    string, so `ssl.method=detmatch` needs no quotes."""
+    target, equals, literal = text.partition("=")
+    section, dot, key = target.strip().partition(".")
+    if not equals or not dot or not section or not key or "." in key:
+        raise ConfigError(f"--set {text!r}: expected section.key=value, e.g. train.steps=100")
+    try:
+        value = tomllib.loads(f"value = {literal.strip()}")["value"]
+    except tomllib.TOMLDecodeError:
+        value = literal.strip()
+    return section, key, value
+
+
+def apply_overrides(config: ExperimentConfig, overrides: Sequence[str]) -> ExperimentConfig:
+    """The config with `section.key=value` overrides (`parse_override`) applied, all at once and
+    then validated as a file is (so widths and depths can change together). Unknown sections
+    and keys are ConfigErrors naming them; a string key keeps the text as written (`--set
+    data.val_split=2024` is the split "2024")."""
+    raw = config_to_dict(config)
+    for text in overrides:
+        section, key, value = parse_override(text)
+        if section not in raw:
+            raise ConfigError(
+                f"--set {text!r}: unknown section [{section}]; known sections: {', '.join(raw)}"
+            )
+        if key not in raw[section]:
+            raise ConfigError(
+                f"--set {text!r}: unknown key {key!r} in [{section}]; known keys: "
+                f"{', '.join(sorted(raw[section]))}"
+            )
+        if isinstance(raw[section][key], str) and not isinstance(value, str):
+            value = text.partition("=")[2].strip()
+        raw[section][key] = value
+    return config_from_dict(raw)
 
 
 def config_to_dict(config: ExperimentConfig) -> dict[str, Any]:

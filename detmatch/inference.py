@@ -1,5 +1,5 @@
 """Running both detectors on batches, turning their outputs into KITTI result rows, and
-writing a checkpoint's result files for a split (`detmatch predict`)."""
+writing a checkpoint's result files for a selection of frames (`detmatch predict`)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from tqdm import tqdm
 from detmatch.data.dataset import Batch, FrameDataset, collate
 from detmatch.data.kitti import KittiObjects, write_objects
 from detmatch.data.results import result_objects_2d, result_objects_3d
+from detmatch.data.selection import FrameSelection
 from detmatch.models.build import load_detectors
 from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
 from detmatch.precision import autocast, fp32
@@ -65,19 +66,26 @@ def detections_3d_to_objects(
 
 
 def predict_split(
-    checkpoint: Path, data_root: Path, split: str, out_dir: Path, batch_size: int = 4
+    checkpoint: Path,
+    data_root: Path,
+    frames: FrameSelection | str,
+    out_dir: Path,
+    batch_size: int = 4,
 ) -> int:
     """Write OUT/3d/ID.txt (camera-frame boxes + projected 2D boxes) and OUT/2d/ID.txt (2D boxes
-    with placeholder 3D fields) for every frame of the split. Returns the number of frames."""
+    with placeholder 3D fields) for every selected frame (a string is an ImageSets split of
+    training/). Returns the number of frames."""
+    if isinstance(frames, str):
+        frames = FrameSelection(split=frames, subset="training")
     loaded = load_detectors(checkpoint)
     config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
     classes = config.data.classes
     dataset = FrameDataset(
-        data_root, split, classes, config.data.image_size, model_3d.grid, with_labels=False
+        data_root, frames, classes, config.data.image_size, model_3d.grid, with_labels=False
     )
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, collate_fn=collate)
     out_dir = Path(out_dir)
-    with tqdm(total=len(dataset), desc=f"predict {split}", dynamic_ncols=True) as progress:
+    with tqdm(total=len(dataset), desc="predict", dynamic_ncols=True) as progress:
         for batch in loader:
             for sample, (detections_2d, detections_3d) in zip(
                 batch.samples, predict_batch(model_2d, model_3d, batch), strict=True

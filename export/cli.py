@@ -4,6 +4,7 @@
                     [--parity-data KITTI_DIR ...]
     detmatch-export --repository DIR --list
     detmatch-export --repository DIR --promote V | --demote V
+    detmatch-export --version
 
 Exit status: 0 published (or listed / promoted), 1 the export failed its checks (nothing was
 published), 2 bad arguments or missing files.
@@ -16,6 +17,18 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from detmatch.cli import package_version, show_defaults
+
+
+class PublishVersionOrShow(argparse.Action):
+    """`--version V` publishes as version V; `--version` alone prints the tool's version."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        if values is None:
+            print(f"{parser.prog} {package_version()}")
+            parser.exit()
+        setattr(namespace, self.dest, values)
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -25,7 +38,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--repository", required=True, help="model repository directory")
     parser.add_argument("--checkpoint", help="checkpoint file or run directory (its latest)")
-    parser.add_argument("--version", help="version number to publish as (default: next free)")
+    parser.add_argument(
+        "--version",
+        nargs="?",
+        action=PublishVersionOrShow,
+        metavar="V",
+        help="version number to publish as (default: the next free one); without V: print "
+        "detmatch-export's version and exit",
+    )
     parser.add_argument(
         "--promote",
         nargs="?",
@@ -60,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--rtol", type=float, default=1e-4, help="parity relative tolerance")
     parser.add_argument("--atol", type=float, default=1e-3, help="parity absolute tolerance")
     parser.add_argument("--quiet", action="store_true", help="print only the result")
+    show_defaults(parser)
     return parser
 
 

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 from detmatch.data.augment import CloudTransform
 from detmatch.data.kitti import KittiDataset
+from detmatch.data.selection import FrameSelection
 from detmatch.geometry import bev_cells_in_camera_view, project_boxes_to_image
 from detmatch.models.pillars import PillarGrid, Pillars, pillarize
 from detmatch.structures import Calibration, Detections, Frame, LabeledBoxes
@@ -226,7 +227,7 @@ def collate(samples: list[Sample]) -> Batch:
 
 
 class FrameDataset(torch.utils.data.Dataset):
-    """Frames of one ImageSets split as Samples.
+    """Frames of one ImageSets split (or of a FrameSelection) as Samples.
 
     Indexed by a frame index, or by (frame index, draw) as StepSampler yields: with augment,
     the frame is flipped with probability flip_probability from a generator seeded by
@@ -236,7 +237,7 @@ class FrameDataset(torch.utils.data.Dataset):
     def __init__(
         self,
         root: str | Path,
-        split: str,
+        split: str | FrameSelection,
         classes: tuple[str, ...],
         input_size: tuple[int, int],
         grid: PillarGrid,
@@ -246,8 +247,11 @@ class FrameDataset(torch.utils.data.Dataset):
         with_labels: bool = True,
         projected_2d: bool = False,
     ) -> None:
-        self.kitti = KittiDataset(root)
-        self.ids = self.kitti.ids(split)
+        if isinstance(split, FrameSelection):
+            self.kitti, self.ids = split.resolve(root)
+        else:
+            self.kitti = KittiDataset(root)
+            self.ids = self.kitti.ids(split)
         if not self.ids:
             raise ValueError(f"split {split!r} of {root} has no frames")
         self.classes = tuple(classes)

