@@ -235,16 +235,11 @@ class TrainConfig:
     # the forward passes' precision; losses, decoding, matching and the EMA stay fp32.
     precision: str = "auto"
 
-    def __post_init__(self) -> None:
-        if self.precision not in PRECISIONS:
-            raise ConfigError(
-                f"[train] precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}"
-            )
-
     SECTION: ClassVar[str] = "train"
 
     def __post_init__(self) -> None:
         check = _Checks(self)
+        check.one_of("precision", PRECISIONS)
         check.positive("steps", "batch_size", "lr_2d", "lr_3d", "grad_clip")
         check.positive("eval_every", "checkpoint_every", "log_every")
         check.non_negative("weight_decay_2d", "weight_decay_3d", "warmup_steps", "seed")
