@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from detmatch.config import DEVICES, packaged_configs
+from detmatch.config import DEVICES, METHODS, packaged_configs
 from detmatch.data.kitti import SUBSETS
 
 # `detmatch serve --host` when not given: the Docker image sets 0.0.0.0 (all interfaces).
@@ -79,7 +79,11 @@ def _synth(args: argparse.Namespace) -> int:
 def _split(args: argparse.Namespace) -> int:
     from detmatch.data.splits import make_split
 
-    result = make_split(Path(args.data), args.fraction, args.seed, source_split=args.source)
+    result = make_split(
+        Path(args.data), args.fraction, args.seed, args.source, dev_fraction=args.dev_fraction
+    )
+    if result.dev_path is not None:
+        print(f"dev:       {result.num_dev:6d} frames -> {result.dev_path}")
     print(
         f"labeled:   {result.num_labeled:6d} frames -> {result.labeled_path}\n"
         f"unlabeled: {result.num_unlabeled:6d} frames -> {result.unlabeled_path}"
@@ -154,15 +158,11 @@ def _train(args: argparse.Namespace) -> int:
             "CKPT (a labeled-only run) or set [ssl] pretrained"
         )
     from detmatch.training.distributed import init_distributed, shutdown_distributed
-    from detmatch.training.semi_supervised import SemiSupervisedTrainer
-    from detmatch.training.trainer import SupervisedTrainer
+    from detmatch.training.semi_supervised import trainer_type
 
     context = init_distributed(args.device)
     try:
-        trainer_type = SupervisedTrainer
-        if config.ssl.method != "labeled-only":
-            trainer_type = SemiSupervisedTrainer
-        trainer = trainer_type(config, Path(args.out), context)
+        trainer = trainer_type(config.ssl.method)(config, Path(args.out), context)
         if args.resume and trainer.resume() and context.is_main:
             print(f"resumed {args.out} at step {trainer.state.step}")
         state = trainer.run()
@@ -294,6 +294,13 @@ def build_parser() -> argparse.ArgumentParser:
     split.add_argument("--fraction", type=float, required=True, help="labeled fraction in (0, 1)")
     split.add_argument("--seed", type=int, default=0, help="random seed of the labeled subset")
     split.add_argument("--source", default="train", help="ImageSets split to divide")
+    split.add_argument(
+        "--dev-fraction",
+        type=float,
+        default=0.0,
+        help="first hold out this fraction of the source as a labeled dev split for tuning "
+        "(the same frames for every seed); 0: no dev split",
+    )
     split.set_defaults(handler=_split)
 
     show = commands.add_parser("show", help="render a frame: image with 2D boxes + bird's-eye view")
@@ -334,8 +341,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--steps", type=int, help="override [train] steps")
     train.add_argument(
         "--method",
-        choices=("labeled-only", "confidence", "detmatch"),
-        help="override [ssl] method: labeled-only, confidence thresholding or DetMatch",
+        choices=METHODS,
+        help="override [ssl] method: labeled-only (pre-training), labeled-only-control (the "
+        "pre-trained model continued with an EMA teacher, no unlabeled data), confidence "
+        "thresholding or DetMatch",
     )
     train.add_argument("--pretrained", help="override [ssl] pretrained: the labeled-only run")
     train.add_argument(

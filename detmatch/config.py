@@ -95,8 +95,10 @@ BOXES_2D_SOURCES = ("annotated", "projected")
 # Where training runs: "auto" (the first CUDA GPU when torch sees one, else the CPU), "cpu"
 # or "cuda".
 DEVICES = ("auto", "cpu", "cuda")
-# The forward passes' precision (detmatch.training.precision).
+# The forward passes' precision (detmatch.precision).
 PRECISIONS = ("auto", "fp32", "bf16")
+SCHEDULES_2D = ("constant", "step")
+SCHEDULES_3D = ("constant", "onecycle")
 
 
 @dataclass(frozen=True)
@@ -114,7 +116,7 @@ class DataConfig:
     # "projected" (each 3D label's box projected into the image, as the authors' code trains
     # it: the same convention as the projected 3D boxes the consistency loss compares with).
     # Evaluation always uses the annotated boxes.
-    train_boxes_2d: str = "annotated"
+    train_boxes_2d: str = "projected"
 
     SECTION: ClassVar[str] = "data"
 
@@ -234,12 +236,25 @@ class TrainConfig:
     # "auto" (bf16 autocast where the CPU or GPU computes bf16 natively), "fp32" or "bf16":
     # the forward passes' precision; losses, decoding, matching and the EMA stay fp32.
     precision: str = "auto"
+    # Learning-rate schedules over `steps` (after the linear warm-up): "constant"; for 2D
+    # "step" (x0.1 at each fraction of milestones_2d); for 3D "onecycle" (cosine from
+    # lr_3d / onecycle_div up to lr_3d at the fraction onecycle_peak, then cosine down to
+    # lr_3d / onecycle_div / 1e4: OpenPCDet's one-cycle, momentum not cycled).
+    schedule_2d: str = "constant"
+    milestones_2d: tuple[float, ...] = (0.67, 0.89)
+    schedule_3d: str = "constant"
+    onecycle_peak: float = 0.4
+    onecycle_div: float = 10.0
 
     SECTION: ClassVar[str] = "train"
 
     def __post_init__(self) -> None:
         check = _Checks(self)
         check.one_of("precision", PRECISIONS)
+        check.one_of("schedule_2d", SCHEDULES_2D)
+        check.one_of("schedule_3d", SCHEDULES_3D)
+        check.probability("milestones_2d", "onecycle_peak")
+        check.positive("onecycle_div")
         check.positive("steps", "batch_size", "lr_2d", "lr_3d", "grad_clip")
         check.positive("eval_every", "checkpoint_every", "log_every")
         check.non_negative("weight_decay_2d", "weight_decay_3d", "warmup_steps", "seed")
@@ -247,7 +262,43 @@ class TrainConfig:
         check.probability("flip_probability")
 
 
-METHODS = ("labeled-only", "confidence", "detmatch")
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Augmentation of labeled frames, in pre-training and in the labeled half of
+    teacher-student steps (DESIGN.md section 3; the flip is [train] flip_probability, shared
+    by image and cloud). 3D only, the image and the 2D targets untouched: ground-truth
+    database sampling (objects of other labeled frames pasted into the cloud with their
+    points), then global rotation about z in +-rotation radians and global scale in scale.
+    2D only: image_scale, a random rescale of the image before it is cropped or padded to
+    [data] image_size (multi-scale training; [1, 1] is off). repeat_factor_threshold: frames
+    holding rare classes are drawn more often (detectron2's repeat-factor sampling; 0 is off).
+    """
+
+    gt_sampling: bool = True
+    # Objects of each class ([data] classes order) a frame is filled up to by sampling.
+    gt_sample_counts: tuple[int, ...] = (15, 10, 10)
+    gt_min_points: int = 5
+    rotation: float = 0.7853981633974483
+    scale: tuple[float, float] = (0.95, 1.05)
+    image_scale: tuple[float, float] = (1.0, 1.0)
+    repeat_factor_threshold: float = 0.0
+
+    SECTION: ClassVar[str] = "augment"
+
+    def __post_init__(self) -> None:
+        check = _Checks(self)
+        check.non_negative("gt_sample_counts", "gt_min_points", "rotation")
+        check.positive("scale", "image_scale")
+        check.probability("repeat_factor_threshold")
+        for key in ("scale", "image_scale"):
+            low, high = getattr(self, key)
+            if low > high:
+                check.fail(key, "[low, high] with low <= high")
+
+
+# labeled-only: pre-training (SupervisedTrainer); labeled-only-control: a pre-trained model
+# continued on labeled frames with the teacher-student run's EMA teacher and no unlabeled loss.
+METHODS = ("labeled-only", "labeled-only-control", "confidence", "detmatch")
 
 
 @dataclass(frozen=True)
@@ -307,8 +358,14 @@ class ExperimentConfig:
     detector3d: Detector3DConfig = field(default_factory=Detector3DConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     ssl: SemiSupervisedConfig = field(default_factory=SemiSupervisedConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
 
     def __post_init__(self) -> None:
+        if len(self.augment.gt_sample_counts) != len(self.data.classes):
+            raise ConfigError(
+                f"[augment] gt_sample_counts needs one count per class of [data] classes "
+                f"({len(self.data.classes)}), got {list(self.augment.gt_sample_counts)}"
+            )
         stride = self.detector2d.stride
         if any(size % stride for size in self.data.image_size):
             raise ConfigError(
@@ -439,5 +496,5 @@ def config_to_dict(config: ExperimentConfig) -> dict[str, Any]:
     """Plain nested dict (tuples as lists): for checkpoints and manifests."""
     return {
         section: to_plain(getattr(config, section))
-        for section in ("data", "detector2d", "detector3d", "train", "ssl")
+        for section in ("data", "detector2d", "detector3d", "train", "ssl", "augment")
     }

@@ -61,9 +61,12 @@ class ImageDetector2DGraph(nn.Module):
         x = F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
         maps = self.detector(x)
         boxes, scores, classes, probabilities = self.detector.decode(maps)
-        # Input pixels -> original pixels: x * W0 / w, y * H0 / h.
+        # Input pixels -> original pixels: x * W0 / w, y * H0 / h, clipped to the image as
+        # ImageTransform.invert_detections does ([0, W0 - 1] x [0, H0 - 1]).
         scale = torch.stack([original[1] / width, original[0] / height]).repeat(2)
-        return boxes[0] * scale, scores[0], classes[0], probabilities[0], *maps
+        limit = torch.stack([original[1] - 1, original[0] - 1]).repeat(2)
+        boxes = torch.minimum(torch.clamp(boxes[0] * scale, min=0.0), limit)
+        return boxes, scores[0], classes[0], probabilities[0], *maps
 
 
 class PillarDetector3DGraph(nn.Module):

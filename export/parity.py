@@ -280,7 +280,7 @@ def torch_reference(
         maps_3d = forward_pillars(model_3d, batch.pillars)
         decoded_3d = model_3d.decode(maps_3d)
     out_2d = {n: t[0].numpy() for n, t in zip(DECODED_OUTPUTS, decoded_2d, strict=True)}
-    out_2d["boxes"] = sample.image_transform.invert(out_2d["boxes"].astype(np.float64))
+    out_2d["boxes"] = sample.image_transform.to_image(out_2d["boxes"].astype(np.float64))
     out_2d.update({n: t.numpy() for n, t in zip(model_2d.output_names, maps_2d, strict=True)})
     out_3d = {n: t[0].numpy() for n, t in zip(DECODED_OUTPUTS, decoded_3d, strict=True)}
     out_3d.update({n: t.numpy() for n, t in zip(model_3d.output_names, maps_3d, strict=True)})

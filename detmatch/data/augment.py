@@ -32,6 +32,10 @@ class CloudTransform:
     rotation: float = 0.0
     scale: float = 1.0
 
+    @property
+    def is_identity(self) -> bool:
+        return not self.flipped and self.rotation == 0.0 and self.scale == 1.0
+
     def _matrix(self) -> np.ndarray:
         c, s = math.cos(self.rotation), math.sin(self.rotation)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

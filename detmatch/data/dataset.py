@@ -7,6 +7,7 @@ detections map back to the un-augmented frame exactly.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +15,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from detmatch.data.augment import CloudTransform
+from detmatch.config import AugmentConfig
+from detmatch.constants import IMAGE_MEAN
+from detmatch.data.augment import CloudTransform, sample_cloud_transform
+from detmatch.data.gt_sampling import DatabaseObject, GroundTruthDatabase, paste_objects
 from detmatch.data.kitti import KittiDataset
 from detmatch.data.selection import FrameSelection
 from detmatch.geometry import bev_cells_in_camera_view, project_boxes_to_image
@@ -25,38 +29,92 @@ from detmatch.structures import Calibration, Detections, Frame, LabeledBoxes
 @dataclass(frozen=True)
 class ImageTransform:
     """Original image pixels -> network input pixels: optional horizontal flip of the original
-    (width W0), then scale by (sx, sy)."""
+    (width W0), resize to `resized` (w, h) pixels (None: the input size), then the input window
+    of input_size taken at `offset` (x, y) of the resized image (a crop; negative offsets pad).
+    Multi-scale training draws resized and offset; everything else uses the plain resize."""
 
     original_size: tuple[int, int]
     input_size: tuple[int, int]
     flipped: bool
+    resized: tuple[int, int] | None = None
+    offset: tuple[int, int] = (0, 0)
+
+    @property
+    def resized_size(self) -> tuple[int, int]:
+        return self.input_size if self.resized is None else self.resized
 
     @property
     def scale(self) -> tuple[float, float]:
-        return (
-            self.input_size[0] / self.original_size[0],
-            self.input_size[1] / self.original_size[1],
-        )
+        width, height = self.resized_size
+        return width / self.original_size[0], height / self.original_size[1]
 
     def apply(self, boxes: np.ndarray) -> np.ndarray:
-        """(N, 4) xyxy original pixels -> input pixels."""
+        """(N, 4) xyxy original pixels -> input pixels (not clipped to the window)."""
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4).copy()
         if self.flipped:
             boxes[:, [0, 2]] = self.original_size[0] - boxes[:, [2, 0]]
         sx, sy = self.scale
-        return boxes * np.array([sx, sy, sx, sy])
+        boxes = boxes * np.array([sx, sy, sx, sy])
+        if self.offset != (0, 0):
+            boxes = boxes - np.array([*self.offset, *self.offset], dtype=np.float64)
+        return boxes
 
     def invert_detections(self, detections: Detections) -> Detections:
-        """2D detections, input pixels -> original pixels."""
-        return dataclasses.replace(detections, boxes=self.invert(detections.boxes))
+        """2D detections, input pixels -> original pixels, clipped to the image."""
+        return dataclasses.replace(detections, boxes=self.to_image(detections.boxes))
+
+    def to_image(self, boxes: np.ndarray) -> np.ndarray:
+        """Detected (N, 4) boxes in input pixels -> original pixels clipped to the image,
+        [0, W - 1] x [0, H - 1] like projected boxes (DESIGN.md section 3); the exported 2D
+        graph does the same."""
+        boxes = self.invert(boxes)
+        width, height = self.original_size
+        boxes[:, 0::2] = boxes[:, 0::2].clip(0, width - 1)
+        boxes[:, 1::2] = boxes[:, 1::2].clip(0, height - 1)
+        return boxes
 
     def invert(self, boxes: np.ndarray) -> np.ndarray:
         """(N, 4) xyxy input pixels -> original pixels."""
         sx, sy = self.scale
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4) / np.array([sx, sy, sx, sy])
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        if self.offset != (0, 0):
+            boxes = boxes + np.array([*self.offset, *self.offset], dtype=np.float64)
+        boxes = boxes / np.array([sx, sy, sx, sy])
         if self.flipped:
             boxes[:, [0, 2]] = self.original_size[0] - boxes[:, [2, 0]]
         return boxes
+
+    def clip(self, labels: LabeledBoxes) -> LabeledBoxes:
+        """Training boxes in input pixels cut to the input window; boxes left with no area
+        are dropped."""
+        if self.resized is None:
+            return labels
+        width, height = self.input_size
+        boxes = labels.boxes.copy()
+        boxes[:, 0::2] = boxes[:, 0::2].clip(0, width)
+        boxes[:, 1::2] = boxes[:, 1::2].clip(0, height)
+        keep = (boxes[:, 2] > boxes[:, 0] + 1) & (boxes[:, 3] > boxes[:, 1] + 1)
+        return LabeledBoxes(boxes[keep], labels.classes[keep])
+
+
+def random_image_transform(
+    rng: np.random.Generator,
+    original_size: tuple[int, int],
+    input_size: tuple[int, int],
+    flipped: bool,
+    scale_range: tuple[float, float],
+) -> ImageTransform:
+    """Multi-scale training: the input-sized resize scaled by s in scale_range, and a random
+    input window of it (cropped, or padded where the rescaled image is smaller)."""
+    if scale_range == (1.0, 1.0):
+        return ImageTransform(original_size, input_size, flipped)
+    s = float(rng.uniform(*scale_range))
+    resized = (max(1, round(input_size[0] * s)), max(1, round(input_size[1] * s)))
+    offset = tuple(
+        int(rng.integers(min(0, r - i), max(0, r - i) + 1))
+        for r, i in zip(resized, input_size, strict=True)
+    )
+    return ImageTransform(original_size, input_size, flipped, resized, offset)
 
 
 def flip_boxes_3d(boxes: np.ndarray) -> np.ndarray:
@@ -73,19 +131,33 @@ def flip_points(points: np.ndarray) -> np.ndarray:
     return flipped
 
 
+# Padding of multi-scale windows: the normalisation's mean pixel (0 after normalising).
+PAD_PIXEL = torch.tensor([255.0 * m for m in IMAGE_MEAN]).view(3, 1, 1)
+
+
 def image_to_tensor(image: np.ndarray, transform: ImageTransform) -> torch.Tensor:
-    """(H, W, 3) uint8 -> (3, h, w) float32 in [0, 255], flipped and bilinearly resized."""
+    """(H, W, 3) uint8 -> (3, h, w) float32 in [0, 255]: flipped, bilinearly resized and, for
+    multi-scale windows, cropped or padded with the mean pixel."""
     tensor = torch.from_numpy(np.array(image, dtype=np.uint8)).permute(2, 0, 1).float()
     if transform.flipped:
         tensor = torch.flip(tensor, dims=[2])
-    if tuple(transform.input_size) != (image.shape[1], image.shape[0]):
+    width, height = transform.resized_size
+    if (width, height) != (image.shape[1], image.shape[0]):
         tensor = F.interpolate(
-            tensor[None],
-            size=(transform.input_size[1], transform.input_size[0]),
-            mode="bilinear",
-            align_corners=False,
+            tensor[None], size=(height, width), mode="bilinear", align_corners=False
         )[0]
-    return tensor
+    if transform.resized is None:
+        return tensor
+    (x0, y0), (out_w, out_h) = transform.offset, transform.input_size
+    window = PAD_PIXEL.expand(3, out_h, out_w).clone()
+    src_x, src_y = (
+        slice(max(x0, 0), min(x0 + out_w, width)),
+        slice(max(y0, 0), min(y0 + out_h, height)),
+    )
+    dst_x = slice(src_x.start - x0, src_x.stop - x0)
+    dst_y = slice(src_y.start - y0, src_y.stop - y0)
+    window[:, dst_y, dst_x] = tensor[:, src_y, src_x]
+    return window
 
 
 @dataclass(frozen=True)
@@ -155,34 +227,54 @@ def make_sample(
     classes: tuple[str, ...],
     input_size: tuple[int, int],
     grid: PillarGrid,
-    flip: bool,
+    flip: bool = False,
     projected_2d: bool = False,
 ) -> Sample:
-    """Select the training classes, flip image and point cloud together if asked, resize the
-    image and pillarize the points. projected_2d: 2D boxes are the 3D labels projected into
-    the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes."""
-    transform = ImageTransform(frame.image_size, tuple(input_size), flip)
-    cloud = CloudTransform(flipped=flip)
+    """A frame resized for the 2D detector and pillarized for the 3D one, optionally flipped
+    (image and cloud together); see augmented_sample."""
+    image = ImageTransform(frame.image_size, tuple(input_size), flip)
+    return augmented_sample(frame, classes, grid, image, CloudTransform(flipped=flip), projected_2d)
+
+
+def augmented_sample(
+    frame: Frame,
+    classes: tuple[str, ...],
+    grid: PillarGrid,
+    image: ImageTransform,
+    cloud: CloudTransform,
+    projected_2d: bool = False,
+    pasted: Sequence[DatabaseObject] = (),
+) -> Sample:
+    """Select the training classes; the image goes through `image` (flip, resize, window),
+    the cloud through `cloud` (flip, rotation, scale) after the `pasted` database objects
+    replaced its points inside their boxes. projected_2d: 2D boxes are the 3D labels projected
+    into the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes. Pasted
+    objects join the 3D labels only."""
     gt_2d, gt_3d = LabeledBoxes.empty(4), LabeledBoxes.empty(7)
     if frame.labels is not None:
         names = [str(n) for n in frame.labels.names]
         keep = np.array([n in classes for n in names], dtype=bool)
         class_ids = np.array(
             [classes.index(n) if n in classes else -1 for n in names], dtype=np.int64
-        )
+        )[keep]
         boxes_3d = frame.labels.boxes_3d.data[keep]
         boxes_2d = frame.labels.boxes_2d.xyxy[keep]
         if projected_2d:
             boxes_2d = project_boxes_to_image(boxes_3d, frame.calib, frame.image_size)
-        gt_2d = LabeledBoxes(transform.apply(boxes_2d), class_ids[keep])
-        gt_3d = LabeledBoxes(flip_boxes_3d(boxes_3d) if flip else boxes_3d, class_ids[keep])
-    points = flip_points(frame.points) if flip else frame.points
+        gt_2d = image.clip(LabeledBoxes(image.apply(boxes_2d), class_ids))
+        if pasted:
+            boxes_3d = np.concatenate([boxes_3d, np.stack([o.box for o in pasted])])
+            class_ids = np.concatenate([class_ids, [o.class_id for o in pasted]])
+        gt_3d = LabeledBoxes(cloud.apply_boxes(boxes_3d), class_ids)
+    points = paste_objects(frame.points, list(pasted))
+    if not cloud.is_identity:
+        points = cloud.apply_points(points)
     return Sample(
         frame_id=frame.frame_id,
         calib=frame.calib,
-        image_transform=transform,
+        image_transform=image,
         cloud=cloud,
-        image=image_to_tensor(frame.image, transform),
+        image=image_to_tensor(frame.image, image),
         gt_2d=gt_2d,
         gt_3d=gt_3d,
         pillars=pillarize(points, grid),
@@ -230,8 +322,11 @@ class FrameDataset(torch.utils.data.Dataset):
     """Frames of one ImageSets split (or of a FrameSelection) as Samples.
 
     Indexed by a frame index, or by (frame index, draw) as StepSampler yields: with augment,
-    the frame is flipped with probability flip_probability from a generator seeded by
-    (seed, draw), so a replayed step gets the same augmentation.
+    the frame is flipped (image and cloud) with probability flip_probability from a generator
+    seeded by (seed, draw), so a replayed step gets the same augmentation. labeled_augment
+    (labeled frames only) adds, from a generator seeded by (seed, draw, 2): ground-truth
+    database sampling from this split's own frames, global rotation and scale of the cloud,
+    and the 2D multi-scale window (detmatch.config.AugmentConfig).
     """
 
     def __init__(
@@ -246,6 +341,8 @@ class FrameDataset(torch.utils.data.Dataset):
         seed: int = 0,
         with_labels: bool = True,
         projected_2d: bool = False,
+        labeled_augment: AugmentConfig | None = None,
+        progress: bool = False,
     ) -> None:
         if isinstance(split, FrameSelection):
             self.kitti, self.ids = split.resolve(root)
@@ -262,6 +359,12 @@ class FrameDataset(torch.utils.data.Dataset):
         self.seed = seed
         self.with_labels = with_labels
         self.projected_2d = projected_2d
+        self.labeled_augment = labeled_augment
+        self.database = None
+        if labeled_augment is not None and labeled_augment.gt_sampling:
+            self.database = GroundTruthDatabase.build(
+                self.kitti, self.ids, self.classes, labeled_augment.gt_min_points, progress
+            )
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -272,4 +375,33 @@ class FrameDataset(torch.utils.data.Dataset):
         flip = False
         if self.augment:
             flip = bool(np.random.default_rng([self.seed, draw]).random() < self.flip_probability)
-        return make_sample(frame, self.classes, self.input_size, self.grid, flip, self.projected_2d)
+        if not self.augment or self.labeled_augment is None:
+            return make_sample(
+                frame, self.classes, self.input_size, self.grid, flip, self.projected_2d
+            )
+        options = self.labeled_augment
+        rng = np.random.default_rng([self.seed, draw, 2])
+        cloud = sample_cloud_transform(rng, flip, options.rotation, options.scale)
+        image = random_image_transform(
+            rng, frame.image_size, self.input_size, flip, options.image_scale
+        )
+        pasted = []
+        if self.database is not None and frame.labels is not None:
+            labels = frame.labels
+            keep = np.array([str(n) in self.classes for n in labels.names], dtype=bool)
+            class_ids = np.array([self.classes.index(str(n)) for n in labels.names[keep]])
+            pasted = self.database.sample(
+                rng, labels.boxes_3d.data[keep], class_ids, options.gt_sample_counts,
+                frame.frame_id,
+            )  # fmt: skip
+        return augmented_sample(
+            frame, self.classes, self.grid, image, cloud, self.projected_2d, pasted
+        )
+
+    def class_presence(self) -> np.ndarray:
+        """(frames, classes) bool: which training classes each frame's labels hold."""
+        presence = np.zeros((len(self.ids), len(self.classes)), dtype=bool)
+        for row, frame_id in enumerate(self.ids):
+            names = {str(n) for n in self.kitti.read_objects(frame_id).names}
+            presence[row] = [c in names for c in self.classes]
+        return presence

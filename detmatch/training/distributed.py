@@ -76,7 +76,12 @@ class StepSampler(torch.utils.data.Sampler[tuple[int, int]]):
     """Indices for global steps start_step, start_step + 1, ...: each epoch is a permutation
     seeded by (seed, epoch); a step takes batch_size * world_size consecutive indices and this
     rank takes its slice. Resuming at a step replays exactly the data (and augmentation) an
-    uninterrupted run would have seen."""
+    uninterrupted run would have seen.
+
+    repeat_factors (one per frame, >= 1), if given: each epoch holds frame i floor(r_i) times
+    plus once more with probability frac(r_i) (detectron2's RepeatFactorTrainingSampler),
+    drawn from the epoch's seed, so frames of rare classes come round more often.
+    """
 
     def __init__(
         self,
@@ -86,6 +91,7 @@ class StepSampler(torch.utils.data.Sampler[tuple[int, int]]):
         start_step: int,
         rank: int = 0,
         world_size: int = 1,
+        repeat_factors: np.ndarray | None = None,
     ) -> None:
         self.size = size
         self.batch_size = batch_size
@@ -93,14 +99,35 @@ class StepSampler(torch.utils.data.Sampler[tuple[int, int]]):
         self.start_step = start_step
         self.rank = rank
         self.world_size = world_size
+        self.repeat_factors = repeat_factors
+        self._epoch_starts = [0]
+
+    def epoch(self, epoch: int) -> np.ndarray:
+        """The frame indices of one epoch, in order."""
+        rng = np.random.default_rng([self.seed, epoch])
+        if self.repeat_factors is None:
+            return rng.permutation(self.size)
+        whole = np.floor(self.repeat_factors).astype(np.int64)
+        extra = rng.random(self.size) < self.repeat_factors - whole
+        repeated = np.repeat(np.arange(self.size), whole + extra)
+        return repeated[rng.permutation(len(repeated))]
+
+    def _locate(self, position: int) -> tuple[int, int]:
+        """(epoch, offset in it) of a stream position."""
+        if self.repeat_factors is None:
+            return divmod(position, self.size)
+        while self._epoch_starts[-1] <= position:
+            epoch = len(self._epoch_starts) - 1
+            self._epoch_starts.append(self._epoch_starts[-1] + len(self.epoch(epoch)))
+        epoch = int(np.searchsorted(self._epoch_starts, position, side="right")) - 1
+        return epoch, position - self._epoch_starts[epoch]
 
     def _stream(self, start: int, count: int) -> np.ndarray:
         """Positions [start, start + count) of the endless concatenation of seeded epochs."""
         taken: list[np.ndarray] = []
         while count > 0:
-            epoch, offset = divmod(start, self.size)
-            order = np.random.default_rng([self.seed, epoch]).permutation(self.size)
-            part = order[offset : offset + count]
+            epoch, offset = self._locate(start)
+            part = self.epoch(epoch)[offset : offset + count]
             taken.append(part)
             start, count = start + len(part), count - len(part)
         return np.concatenate(taken)
@@ -116,5 +143,12 @@ class StepSampler(torch.utils.data.Sampler[tuple[int, int]]):
                 yield int(indices[slot]), step * per_step + slot
             step += 1
 
-    def epoch_of_step(self, step: int) -> int:
-        return (step * self.batch_size * self.world_size) // self.size
+
+def repeat_factors(presence: np.ndarray, threshold: float) -> np.ndarray:
+    """Per-frame repeat factors from a (frames, classes) presence matrix: class c's factor is
+    max(1, sqrt(threshold / f_c)) with f_c the fraction of frames holding c; a frame takes its
+    classes' largest (1 for a frame with none)."""
+    fractions = presence.mean(axis=0)
+    per_class = np.maximum(1.0, np.sqrt(threshold / np.maximum(fractions, 1e-12)))
+    factors = np.where(presence, per_class[None, :], 1.0)
+    return factors.max(axis=1) if factors.shape[1] else np.ones(len(presence))

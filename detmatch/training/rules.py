@@ -104,6 +104,6 @@ def pseudo_label_rule(ssl: SemiSupervisedConfig) -> PseudoLabelRule:
             consistency=ssl.consistency_class or ssl.consistency_box,
         ),
     }
-    if ssl.method not in rules:
+    if ssl.method not in rules:  # labeled-only and its control learn from no pseudo-labels
         raise ValueError(f"[ssl] method {ssl.method!r} has no pseudo-label rule")
     return rules[ssl.method]()

@@ -58,8 +58,10 @@ def pseudo_label_targets(
     return targets_2d, [student_3d.build_targets(labels) for labels in labels_3d]
 
 
-class SemiSupervisedTrainer(SupervisedTrainer):
-    """Confidence-thresholding or DetMatch training from pre-trained weights."""
+class TeacherStudentTrainer(SupervisedTrainer):
+    """Students and EMA teachers start from pre-trained weights ([ssl] pretrained); the teachers
+    are the run's output. Trained on labeled frames alone, this is the labeled-only control:
+    the teacher-student schedule and EMA without any unlabeled loss."""
 
     def __init__(
         self, config: ExperimentConfig, run_dir: Path, context: DistributedContext
@@ -67,13 +69,36 @@ class SemiSupervisedTrainer(SupervisedTrainer):
         if config.ssl.method == "labeled-only":
             raise ValueError("labeled-only training uses SupervisedTrainer")
         super().__init__(config, run_dir, context)
-        ssl, data = config.ssl, config.data
-        if ssl.pretrained:
-            pretrained = load_checkpoint(resolve_checkpoint(Path(ssl.pretrained)))
+        if config.ssl.pretrained:
+            pretrained = load_checkpoint(resolve_checkpoint(Path(config.ssl.pretrained)))
             self.state.model_2d.load_state_dict(pretrained["model_2d"])
             self.state.model_3d.load_state_dict(pretrained["model_3d"])
         self.state.teacher_2d = _frozen_copy(self.state.model_2d)
         self.state.teacher_3d = _frozen_copy(self.state.model_3d)
+
+    def update_teachers(self, step: int) -> float:
+        """theta_T <- d theta_T + (1 - d) theta_S after optimiser step `step` (counted from 0);
+        returns d."""
+        ssl = self.config.ssl
+        decay = ema_decay(step, ssl.ema_offset, ssl.ema_max_decay)
+        ema_update(self.state.teacher_2d, self.state.model_2d, decay)
+        ema_update(self.state.teacher_3d, self.state.model_3d, decay)
+        return decay
+
+    def train_step(self, batch: Batch) -> dict[str, float]:
+        record = super().train_step(batch)
+        record["ema_decay"] = self.update_teachers(self.state.step - 1)
+        return record
+
+
+class SemiSupervisedTrainer(TeacherStudentTrainer):
+    """Confidence-thresholding or DetMatch training from pre-trained weights."""
+
+    def __init__(
+        self, config: ExperimentConfig, run_dir: Path, context: DistributedContext
+    ) -> None:
+        super().__init__(config, run_dir, context)
+        ssl, data = config.ssl, config.data
         frames = FrameDataset(
             data.root, ssl.unlabeled_split, data.classes, data.image_size, self.train_set.grid,
             augment=True, flip_probability=config.train.flip_probability,
@@ -146,11 +171,9 @@ class SemiSupervisedTrainer(SupervisedTrainer):
             loss = loss + consistency
 
         # 5. Optimiser steps; the teachers follow the students.
-        decay = ema_decay(state.step, ssl.ema_offset, ssl.ema_max_decay)
-        record: dict[str, Any] = {"loss": loss.item(), "ema_decay": decay}
+        record: dict[str, Any] = {"loss": loss.item()}
         record.update(self.optimise(loss))
-        ema_update(state.teacher_2d, student_2d, decay)
-        ema_update(state.teacher_3d, student_3d, decay)
+        record["ema_decay"] = self.update_teachers(state.step - 1)
 
         record.update(
             {name: sum(v.item() for v in terms.values()) for name, terms in losses.items()}
@@ -161,3 +184,14 @@ class SemiSupervisedTrainer(SupervisedTrainer):
         record.update(loss_2d=record["supervised_2d"] + record["pseudo_2d"])
         record.update(loss_3d=record["supervised_3d"] + record["pseudo_3d"])
         return record
+
+
+def trainer_type(method: str) -> type[SupervisedTrainer]:
+    """The trainer of an [ssl] method."""
+    trainers = {
+        "labeled-only": SupervisedTrainer,
+        "labeled-only-control": TeacherStudentTrainer,
+        "confidence": SemiSupervisedTrainer,
+        "detmatch": SemiSupervisedTrainer,
+    }
+    return trainers[method]

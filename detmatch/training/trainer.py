@@ -7,18 +7,20 @@ optimiser (DESIGN.md section 3). Rank 0 alone logs, evaluates and writes checkpo
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from detmatch.checkpoints import checkpoint_path, list_checkpoints, load_checkpoint
-from detmatch.config import ExperimentConfig, config_to_dict
+from detmatch.config import ExperimentConfig, TrainConfig, config_to_dict
 from detmatch.data.dataset import Batch, FrameDataset, Sample, collate
 from detmatch.models.build import build_detectors
 from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
@@ -30,6 +32,7 @@ from detmatch.training.distributed import (
     StepSampler,
     barrier,
     broadcast_buffers,
+    repeat_factors,
 )
 from detmatch.training.evaluation import evaluate_detectors
 
@@ -59,6 +62,40 @@ def build_optimizers(
 def warmup_factor(step: int, warmup_steps: int) -> float:
     """Linear warm-up to 1 over warmup_steps, then constant."""
     return min(1.0, (step + 1) / max(warmup_steps, 1))
+
+
+def step_factor(step: int, steps: int, milestones: tuple[float, ...]) -> float:
+    """x0.1 for each milestone (a fraction of steps) passed."""
+    return 0.1 ** sum(step >= m * steps for m in milestones)
+
+
+def onecycle_factor(step: int, steps: int, peak: float, div: float) -> float:
+    """OpenPCDet's one-cycle: cosine from 1/div up to 1 at peak * steps, then cosine down to
+    1 / div / 1e4 at the end."""
+    fraction = step / max(steps, 1)
+
+    def cosine(start: float, end: float, t: float) -> float:
+        return end + (start - end) / 2 * (1 + math.cos(math.pi * min(max(t, 0.0), 1.0)))
+
+    if fraction < peak:
+        return cosine(1 / div, 1.0, fraction / peak)
+    return cosine(1.0, 1 / div / 1e4, (fraction - peak) / max(1 - peak, 1e-12))
+
+
+def learning_rates(train: TrainConfig, step: int) -> tuple[float, float]:
+    """(2D, 3D) learning rates at a step: the schedules of [train], the 2D one and a constant
+    3D one after the linear warm-up (one-cycle has its own ramp)."""
+    warmup = warmup_factor(step, train.warmup_steps)
+    lr_2d = train.lr_2d * warmup
+    if train.schedule_2d == "step":
+        lr_2d *= step_factor(step, train.steps, train.milestones_2d)
+    if train.schedule_3d == "onecycle":
+        lr_3d = train.lr_3d * onecycle_factor(
+            step, train.steps, train.onecycle_peak, train.onecycle_div
+        )
+    else:
+        lr_3d = train.lr_3d * warmup
+    return lr_2d, lr_3d
 
 
 @dataclass
@@ -169,7 +206,8 @@ class SupervisedTrainer:
         self.train_set = FrameDataset(
             data.root, data.train_split, data.classes, data.image_size, grid,
             augment=True, flip_probability=config.train.flip_probability, seed=config.train.seed,
-            projected_2d=data.train_boxes_2d == "projected",
+            projected_2d=data.train_boxes_2d == "projected", labeled_augment=config.augment,
+            progress=context.is_main,
         )  # fmt: skip
         self.val_set = FrameDataset(data.root, data.val_split, data.classes, data.image_size, grid)
 
@@ -214,17 +252,21 @@ class SupervisedTrainer:
         state.optimizer_2d.zero_grad(set_to_none=True)
         state.optimizer_3d.zero_grad(set_to_none=True)
         loss.backward()
-        factor = warmup_factor(state.step, train.warmup_steps)
-        lr_2d, lr_3d = train.lr_2d * factor, train.lr_3d * factor
+        lr_2d, lr_3d = learning_rates(train, state.step)
         grad_2d = clip_and_step(state.optimizer_2d, state.model_2d, train.grad_clip, lr_2d)
         grad_3d = clip_and_step(state.optimizer_3d, state.model_3d, train.grad_clip, lr_3d)
         state.step += 1
         return {"grad_norm_2d": grad_2d, "grad_norm_3d": grad_3d, "lr_2d": lr_2d, "lr_3d": lr_3d}
 
     def loader(
-        self, dataset: torch.utils.data.Dataset, collate_fn, seed: int
+        self,
+        dataset: torch.utils.data.Dataset,
+        collate_fn,
+        seed: int,
+        repeat: np.ndarray | None = None,
     ) -> torch.utils.data.DataLoader:
-        """Endless batches from the current step on (StepSampler), this rank's share."""
+        """Endless batches from the current step on (StepSampler), this rank's share; repeat:
+        per-frame repeat factors (None: each frame once an epoch)."""
         train = self.config.train
         sampler = StepSampler(
             size=len(dataset),
@@ -233,6 +275,7 @@ class SupervisedTrainer:
             start_step=self.state.step,
             rank=self.context.rank,
             world_size=self.context.world_size,
+            repeat_factors=repeat,
         )
         return torch.utils.data.DataLoader(
             dataset,
@@ -245,7 +288,11 @@ class SupervisedTrainer:
 
     def batches(self) -> Iterator[Any]:
         """What train_step consumes, one item a step."""
-        return iter(self.loader(self.train_set, collate, self.config.train.seed))
+        threshold = self.config.augment.repeat_factor_threshold
+        repeat = None
+        if threshold > 0:
+            repeat = repeat_factors(self.train_set.class_presence(), threshold)
+        return iter(self.loader(self.train_set, collate, self.config.train.seed, repeat))
 
     def save(self) -> Path:
         path = checkpoint_path(self.run_dir, self.state.step)

@@ -2,7 +2,7 @@ import pytest
 
 from detmatch.cli import main
 from detmatch.data.kitti import read_image_set, write_image_set
-from detmatch.data.splits import choose_labeled, split_names
+from detmatch.data.splits import choose_labeled, dev_name, split_names
 
 
 @pytest.fixture
@@ -48,3 +48,25 @@ def test_bad_split_arguments(layout, capsys):
     assert "fraction must be in (0, 1)" in capsys.readouterr().err
     assert main(["split", "--data", str(root), "--fraction", "0.1", "--source", "nope"]) == 2
     assert "no split 'nope'" in capsys.readouterr().err
+
+
+def test_the_dev_split_is_disjoint_and_shared_by_every_seed(layout):
+    """dev is held out first (the same frames for every seed); the labeled subset and the
+    unlabeled pool come from the rest; val (another split) is not touched."""
+    root, ids = layout
+    write_image_set(root / "ImageSets" / "val.txt", [f"v{i:05d}" for i in range(50)])
+    devs = []
+    for seed in (0, 1):
+        args = ["split", "--data", str(root), "--fraction", "0.05", "--seed", str(seed)]
+        assert main([*args, "--dev-fraction", "0.1"]) == 0
+        dev = read_image_set(root / "ImageSets" / f"{dev_name(0.1)}.txt")
+        labeled_name, unlabeled_name = split_names(0.05, seed, dev_fraction=0.1)
+        labeled = read_image_set(root / "ImageSets" / f"{labeled_name}.txt")
+        unlabeled = read_image_set(root / "ImageSets" / f"{unlabeled_name}.txt")
+        val = read_image_set(root / "ImageSets" / "val.txt")
+        assert len(dev) == 20 and len(labeled) == 10  # fractions of all train frames
+        assert not set(dev) & set(labeled) and not set(dev) & set(unlabeled)
+        assert not set(dev) & set(val) and not set(labeled) & set(unlabeled)
+        assert sorted(dev + labeled + unlabeled) == ids
+        devs.append(dev)
+    assert devs[0] == devs[1]
