@@ -75,7 +75,8 @@ class LabelOptions:
 
 @dataclass(frozen=True)
 class DecodedFrame:
-    """A request's fields, decoded and checked. image: the bytes as sent (PNG or JPEG)."""
+    """A request's fields, decoded and checked. image, points_bytes: the bytes as sent (PNG or
+    JPEG; little-endian float32 N x 4, what the store writes without another copy)."""
 
     namespace: str
     frame_id: str
@@ -84,6 +85,7 @@ class DecodedFrame:
     image: bytes
     points: np.ndarray
     calib: Calibration
+    points_bytes: bytes = b""
 
     def png(self) -> bytes:
         """The image as PNG bytes (what the store keeps): as sent, or re-encoded losslessly."""
@@ -132,7 +134,7 @@ class LabelingService:
         pixels, kind = decode_image(image, self.max_image_pixels)
         cloud = decode_points(points)
         calib = decode_calibration(p2, r0_rect, tr_velo_to_cam)
-        return DecodedFrame(namespace, frame_id, pixels, kind, image, cloud, calib)
+        return DecodedFrame(namespace, frame_id, pixels, kind, image, cloud, calib, points)
 
     def label(self, frame: DecodedFrame, options: LabelOptions = LabelOptions()) -> FrameLabels:
         """Label with the served model, taken once (a swap never changes it mid-request).
@@ -153,8 +155,9 @@ class LabelingService:
     def store_labels(self, frame: DecodedFrame, result: FrameLabels) -> PutResult:
         if self.store is None:
             raise StoreError("this server has no label store")
+        points = frame.points_bytes or frame.points
         return self.store.put(
-            frame.frame_id, frame.png(), frame.points, frame.calib, result, frame.namespace
+            frame.frame_id, frame.png(), points, frame.calib, result, frame.namespace
         )
 
     def label_frame(

@@ -12,16 +12,19 @@ Re-labeling policy: the store keeps one labeling per key, the latest. A `put` of
   model version and thresholds on the same frame: a retry); nothing is written;
 - REPLACES the stored frame and labels otherwise (another model version, other thresholds, or
   other sensor data under the key), and says which model version it replaced.
-A new key is CREATED. Replacing never shows a half-replaced frame to the server itself, and a
-kill in the middle is finished (or undone) by the next open.
+A new key is CREATED.
 
 Durability and group commit: an acknowledged `put` survives SIGKILL and power loss. Each
-caller writes its frame's files to temporary files and fsyncs them in its own thread (in
-parallel with the others); one committer thread then takes every frame that is waiting and,
-for all of them together, renames new frames' files into place, fsyncs each directory once,
-commits one SQLite transaction (WAL, synchronous=FULL), renames replaced frames' files, and
-acknowledges. A frame therefore exists once its row is committed; a kill before that leaves
-files without a row, which the next open deletes.
+caller writes its frame's files to temporary files beside their final names, in its own
+thread. One committer thread takes every frame that is waiting and, for all of them
+together: fsyncs every temporary file and every directory holding them in one concurrent
+round (the file system folds concurrent fsyncs into a few journal commits), commits one
+SQLite transaction (WAL, synchronous=FULL) whose rows list each file's SHA-256, renames the
+temporary files to their final names, and acknowledges. The row is the commit point: a kill
+before it leaves temporary files no row wants (deleted by the next open); a kill after it
+leaves, at worst, durable temporary files holding exactly what a row lists (renamed into
+place by the next open, and read there by `serving.store_export` meanwhile). A replaced
+frame therefore shows either all its old files or all its new ones.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ import secrets
 import sqlite3
 import threading
 import time
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
@@ -78,6 +81,7 @@ log = logging.getLogger("detmatch.serving")
 
 DEFAULT_NAMESPACE = LEGACY_NAMESPACE
 SELECT_FRAME = f"SELECT {', '.join(COLUMNS)} FROM frames WHERE namespace = ? AND frame_id = ?"
+IO_THREADS = 16
 UPSERT = f"INSERT OR REPLACE INTO frames VALUES ({', '.join('?' * len(COLUMNS))})"
 
 
@@ -134,6 +138,9 @@ class LabelStore:
             self._lock_file.close()
             raise
         self._db_lock = threading.Lock()
+        # fsyncs run concurrently: the file system commits concurrent fsyncs in one journal
+        # transaction (ext4, xfs), so a batch's files and directories cost about one.
+        self._io = ThreadPoolExecutor(IO_THREADS, thread_name_prefix=f"store-io-{self.shard}")
         self._queue: queue.SimpleQueue[_Pending | None] = queue.SimpleQueue()
         self.stats = CommitStats()
         self._committer = threading.Thread(
@@ -157,9 +164,15 @@ class LabelStore:
         self._closed = True
         self._queue.put(None)
         self._committer.join()
+        self._io.shutdown(wait=True)
         with self._db_lock:
             self._db.close()
         self._lock_file.close()
+        log.info(
+            "label store closed",
+            extra={"fields": {"shard": self.shard, "frames_committed": self.stats.frames,
+                              "commits": self.stats.batches}},
+        )  # fmt: skip
 
     def get(self, frame_id: str, namespace: str = DEFAULT_NAMESPACE) -> StoredFrame | None:
         key = (validate_frame_id(namespace), validate_frame_id(frame_id))
@@ -171,13 +184,14 @@ class LabelStore:
         self,
         frame_id: str,
         image_png: bytes,
-        points: np.ndarray,
+        points: np.ndarray | bytes,
         calib: Calibration,
         result: FrameLabels,
         namespace: str = DEFAULT_NAMESPACE,
     ) -> PutResult:
         """Store a frame and its labels under (namespace, frame_id) and wait until that is
-        durable; the outcome follows the re-labeling policy. image_png: the image as PNG."""
+        durable; the outcome follows the re-labeling policy. image_png: the image as PNG;
+        points: (N, 4) float32, or their little-endian float32 bytes."""
         namespace, frame_id = validate_frame_id(namespace), validate_frame_id(frame_id)
         if self._closed:
             raise StoreError("the label store is closed")
@@ -194,13 +208,10 @@ class LabelStore:
             if stored is not None and stored.files == digests:  # a retry: nothing to write
                 _remove(temporaries)
                 return PutResult(stored, StoreOutcome.UNCHANGED, stored.model_version)
-            fsync_path(temporaries[calib_path])
             for relative, data in contents.items():
                 temporaries[relative] = self._temporary(relative, token)
                 with open(temporaries[relative], "wb") as handle:
-                    handle.write(data)
-                    handle.flush()
-                    os.fsync(handle.fileno())
+                    handle.write(data)  # fsynced by the committer, with the whole batch
         except OSError as error:
             _remove(temporaries)
             raise StoreError(f"cannot store frame {namespace}/{frame_id}: {error}") from error
@@ -298,23 +309,22 @@ class LabelStore:
                 results.append(PutResult(record, outcome, before and before.model_version))
                 current[record.key] = record
                 rows.append(record.row())
-            for pending in creates:  # new frames: in place before their rows commit
-                for relative, temporary in pending.temporaries.items():
-                    os.replace(temporary, self.path / relative)
-            directories = {t.parent for p in creates + replaces for t in p.temporaries.values()}
-            for directory in directories:
-                fsync_path(directory)
+            written = creates + replaces
+            files = [t for p in written for t in p.temporaries.values()]
+            directories = {t.parent for t in files}
+            list(self._io.map(fsync_path, [*files, *directories]))  # one concurrent round
             try:
                 with transaction(self._db):
                     self._db.executemany(UPSERT, rows)
             except sqlite3.Error as error:
-                for pending in creates:
-                    for relative in pending.temporaries:
-                        (self.path / relative).unlink(missing_ok=True)
+                for pending in written:
+                    _remove(pending.temporaries)
                 raise StoreError(f"index: {error}") from error
-            for pending in replaces:  # replaced frames: after their rows commit
-                for relative, temporary in pending.temporaries.items():
-                    os.replace(temporary, self.path / relative)
+            chosen = {id(p) for p in written}
+            for pending in batch:  # in order: a later labeling of a key lands last
+                if id(pending) in chosen:
+                    for relative, temporary in pending.temporaries.items():
+                        os.replace(temporary, self.path / relative)
         for pending in discard:
             _remove(pending.temporaries)
         return results
@@ -334,7 +344,7 @@ def _contents(
     namespace: str,
     frame_id: str,
     image_png: bytes,
-    points: np.ndarray,
+    points: np.ndarray | bytes,
     calib: Calibration,
     result: FrameLabels,
 ) -> dict[str, bytes]:
@@ -343,10 +353,17 @@ def _contents(
     paths = frame_paths(namespace, frame_id)
     return {
         paths["image"]: image_png,
-        paths["points"]: np.asarray(points).astype("<f4").tobytes(),
+        paths["points"]: points if isinstance(points, bytes) else _points_bytes(points),
         paths["label_2"]: format_objects(labels_to_objects_3d(result, calib), decimals=4).encode(),
         paths["labels"]: json.dumps(labels_to_json(frame_id, result)).encode(),
     }
+
+
+def _points_bytes(points: np.ndarray) -> bytes:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise ValueError(f"points must be (N, 4), got {points.shape}")
+    return points.astype("<f4").tobytes()
 
 
 def _remove(temporaries: dict[str, Path]) -> None:

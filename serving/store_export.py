@@ -25,6 +25,7 @@ from serving.store_layout import (
     SHARDS_DIR,
     StoredFrame,
     read_records,
+    resolve_file,
 )
 
 DEFAULT_VAL_FRACTION = 0.1
@@ -60,7 +61,8 @@ def list_frames(root: str | os.PathLike, namespace: str | None = None) -> list[S
 
 def check_integrity(root: str | os.PathLike) -> list[str]:
     """Problems found: SQLite integrity checks and every indexed file's checksum (empty: fine).
-    Every shard's records are checked, not only the winners."""
+    Every shard's records are checked, not only the winners; a committed file still under its
+    temporary name (see `resolve_file`) is fine."""
     import sqlite3
 
     problems = []
@@ -75,10 +77,9 @@ def check_integrity(root: str | os.PathLike) -> list[str]:
         for record in read_records(index):
             for relative, digest in record.files.items():
                 path = index.parent / relative
-                if not path.is_file():
-                    problems.append(f"{path}: missing")
-                elif hashlib.sha256(path.read_bytes()).hexdigest() != digest:
-                    problems.append(f"{path}: checksum mismatch")
+                if resolve_file(index.parent, relative, digest) is None:
+                    state = "checksum mismatch" if path.is_file() else "missing"
+                    problems.append(f"{path}: {state}")
     return problems
 
 
@@ -182,12 +183,12 @@ def _copy_frame(root: Path, record: StoredFrame, out: Path, name: str) -> Stored
     for _ in range(READ_RETRIES):
         contents = {}
         for relative, digest in record.files.items():
-            path = root / SHARDS_DIR / record.shard / relative
+            path = resolve_file(root / SHARDS_DIR / record.shard, relative, digest)
             try:
-                data = path.read_bytes()
-            except FileNotFoundError:
-                break
-            if hashlib.sha256(data).hexdigest() != digest:
+                data = None if path is None else path.read_bytes()
+            except FileNotFoundError:  # renamed in the meantime
+                data = None
+            if data is None or hashlib.sha256(data).hexdigest() != digest:
                 break
             contents[relative] = data
         else:

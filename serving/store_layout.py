@@ -285,6 +285,19 @@ def recover(shard_dir: Path, records: Iterable[StoredFrame]) -> Recovery:
     return Recovery(temporary, rolled, orphans)
 
 
+def resolve_file(shard_dir: Path, relative: str, digest: str) -> Path | None:
+    """Where a row's file holds its content: its final path, or, for a frame committed but
+    not yet renamed into place (in flight, or killed in between), a temporary file beside it
+    whose SHA-256 is the row's; None when neither does."""
+    path = shard_dir / relative
+    if _digest(path) == digest:
+        return path
+    for candidate in sorted(path.parent.glob(f".{path.name}.*.tmp")):
+        if _digest(candidate) == digest:
+            return candidate
+    return None
+
+
 def _frame_directories(shard_dir: Path) -> list[Path]:
     roots = [shard_dir]  # schema 1's directories: only debris is left there after migration
     namespaces = shard_dir / NAMESPACES_DIR
