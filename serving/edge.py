@@ -168,6 +168,10 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
                     admitted = True
                 if unary_request:
                     request = await self._receive(request_iterator, context, deserializer, method)
+                    if isinstance(request, _Malformed):  # a value, not raised: no traceback
+                        code, quiet = grpc.StatusCode.INVALID_ARGUMENT, True  # keeps the bytes
+                        self._malformed(method, context, request)
+                        await context.abort(code, str(request))
                 else:
                     request = _checked(request_iterator, deserializer)
                 return await respond(inner, request, context)
@@ -247,18 +251,22 @@ class _Malformed(Exception):
 
 
 def _parse(deserializer, raw: bytes):
+    """The message, or a _Malformed (returned, not raised) when raw is not one."""
     if deserializer is None:
         return raw
     try:
         return deserializer(raw)
     except Exception as error:  # noqa: BLE001 - any parse failure of client bytes is bad input
-        raise _Malformed(len(raw), f"{type(error).__name__}: {str(error)[:120]}") from None
+        return _Malformed(len(raw), f"{type(error).__name__}: {str(error)[:120]}")
 
 
 async def _checked(request_iterator, deserializer):
     """A streaming request's messages, each parsed (the handler gets raw bytes)."""
     async for raw in request_iterator:
-        yield _parse(deserializer, raw)
+        message = _parse(deserializer, raw)
+        if isinstance(message, _Malformed):
+            raise message
+        yield message
 
 
 def _code(context) -> grpc.StatusCode:

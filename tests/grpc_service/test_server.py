@@ -226,5 +226,5 @@ def test_example_script_prints_the_labels(server):
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.startswith("frame 000002: ")
-    assert "model version 000001" in done.stdout and "(stored)" in done.stdout
+    assert done.stdout.startswith("frame default/000002: ")
+    assert "model version 000001" in done.stdout and "(stored: created)" in done.stdout
