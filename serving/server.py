@@ -97,7 +97,9 @@ class ServerConfig:
         return EdgeSettings(self.token, self.max_concurrent_rpcs, self.receive_timeout_s)
 
     def channel_options(self) -> list[tuple[str, int]]:
-        ms = lambda seconds: int(seconds * 1000)  # noqa: E731
+        def ms(seconds: float) -> int:
+            return int(seconds * 1000)
+
         return [
             ("grpc.max_receive_message_length", self.max_message_bytes),
             ("grpc.max_send_message_length", self.max_message_bytes),

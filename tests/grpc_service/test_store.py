@@ -243,6 +243,8 @@ def test_schema_1_stores_are_migrated_on_open_and_say_so(tmp_path, served_labele
         ("default", "f2"),
     }  # readers read schema 1 as it is
     assert check_integrity(root) == []
+    assert export_store(root, tmp_path / "before").frames == 2
+    assert (tmp_path / "before" / "training" / "velodyne" / "f2.bin").is_file()
     with caplog.at_level(logging.INFO, logger="detmatch.serving"):
         store = LabelStore(root, "old")
     assert "label store migrated" in caplog.text
