@@ -169,7 +169,7 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
                 if unary_request:
                     request = await self._receive(request_iterator, context, deserializer, method)
                     if isinstance(request, _Malformed):  # a value, not raised: no traceback
-                        code, quiet = grpc.StatusCode.INVALID_ARGUMENT, True  # keeps the bytes
+                        code, quiet = grpc.StatusCode.INVALID_ARGUMENT, True
                         self._malformed(method, context, request)
                         await context.abort(code, str(request))
                 else:

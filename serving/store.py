@@ -277,10 +277,12 @@ class LabelStore:
                     StoreError(f"cannot store frame {pending.record.frame_id}: {error}")
                 )
             return
-        except BaseException as error:  # noqa: BLE001 - a bug must not leave callers waiting
+        except Exception as error:  # noqa: BLE001 - a bug fails its batch, not the committer
+            log.exception("label store commit failed", extra={"fields": {"shard": self.shard}})
             for pending in batch:
+                _remove(pending.temporaries)
                 pending.future.set_exception(error)
-            raise
+            return
         self.stats.batches += 1
         self.stats.frames += len(batch)
         for pending, result in zip(batch, results, strict=True):

@@ -93,6 +93,15 @@ class threading_queue_iterator:  # noqa: N801 - reads as what it is
         self.closed.set()
 
 
+def test_health_watch_streams_through_the_edge(server):
+    """Health.Watch (unary request, streamed answers) is served as a stream by the edge."""
+    with grpc.insecure_channel(server.target) as channel:
+        stub = health_pb2_grpc.HealthStub(channel)
+        answers = stub.Watch(health_pb2.HealthCheckRequest(), timeout=30)
+        assert next(answers).status == health_pb2.HealthCheckResponse.SERVING
+        answers.cancel()
+
+
 def test_calls_beyond_the_concurrency_limit_are_resource_exhausted(tmp_path, slot):
     config = ServerConfig(max_concurrent_rpcs=2, receive_timeout_s=60.0)
     with running_server(slot, tmp_path / "store", config) as running:
