@@ -55,6 +55,8 @@ EXPOSE 50051
 HEALTHCHECK --interval=15s --timeout=10s --start-period=60s --retries=3 \
     CMD ["detmatch", "health", "--target", "127.0.0.1:50051", "--timeout-s", "5"]
 ENTRYPOINT ["detmatch"]
+# The bearer token comes from $DETMATCH_TOKEN (docker run -e / a Kubernetes secret); without
+# one the server refuses to start, unless the command adds --no-auth.
 CMD ["serve", "--repository", "/models", "--store", "/store", "--host", "0.0.0.0", "--port", "50051"]
 
 # Everything, with torch from the PyTorch index: the CPU build unless TORCH_VARIANT names a

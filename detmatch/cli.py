@@ -210,23 +210,46 @@ def _label(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace) -> int:
     import os
 
+    from serving.errors import StoreError
     from serving.logs import configure_logging
-    from serving.server import ServerConfig, serve
+    from serving.server import ServerConfig, format_address, serve
 
+    token = os.environ.get(args.token_env, "")
+    if args.no_auth and token:
+        raise ValueError(
+            f"--no-auth, but ${args.token_env} holds a token: unset it, or drop --no-auth"
+        )
+    if not args.no_auth:
+        if not token.strip():
+            state = "is empty" if args.token_env in os.environ else "is not set"
+            raise ValueError(
+                f"${args.token_env} (--token-env) {state}, and authentication is never silently "
+                f"off: put the bearer token clients must send in ${args.token_env}, or pass "
+                "--no-auth to run without authentication"
+            )
+        if not token.isascii() or not token.isprintable() or token != token.strip():
+            raise ValueError(f"${args.token_env}: a token is printable ASCII without spaces")
     configure_logging()
     config = ServerConfig(
-        address=f"{args.host}:{args.port}",
+        address=format_address(args.host, args.port),
         workers=args.workers,
+        threads=args.threads,
         max_message_bytes=args.max_message_mb * 1024 * 1024,
+        max_image_pixels=args.max_image_pixels,
+        max_concurrent_rpcs=args.max_concurrent_rpcs,
+        receive_timeout_s=args.receive_timeout_s,
         tls_cert=Path(args.tls_cert) if args.tls_cert else None,
         tls_key=Path(args.tls_key) if args.tls_key else None,
-        token=os.environ.get(args.token_env) or None,
+        token=None if args.no_auth else token,
         metrics_port=args.metrics_port,
         metrics_address=args.metrics_host or args.host,
         poll_s=args.poll_s,
         grace_s=args.grace_s,
     )
-    serve(Path(args.repository), Path(args.store), config, shard=args.shard)
+    try:
+        serve(Path(args.repository), Path(args.store), config, shard=args.shard)
+    except (OSError, StoreError) as error:  # a port in use, a shard held by another server
+        raise ValueError(str(error)) from None
     return 0
 
 
@@ -248,8 +271,14 @@ def _health(args: argparse.Namespace) -> int:
 def _store_export(args: argparse.Namespace) -> int:
     from serving.store import export_store
 
-    count = export_store(Path(args.store), Path(args.out))
-    print(f"exported {count} stored frames to {args.out} (KITTI layout, labels in label_2)")
+    summary = export_store(
+        Path(args.store), Path(args.out), args.val_fraction, args.seed, args.namespace or None
+    )
+    print(
+        f"exported {summary.frames} stored frames of namespace(s) {', '.join(summary.namespaces)}"
+        f" to {args.out} (KITTI layout, labels in label_2): ImageSets/train.txt {summary.train},"
+        f" val.txt {summary.val} frames"
+    )
     return 0
 
 
@@ -373,23 +402,45 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
     label.set_defaults(handler=_label)
 
-    serve = commands.add_parser("serve", help="run the gRPC auto-labeling service (no torch)")
+    serve = commands.add_parser(
+        "serve",
+        help="run the gRPC auto-labeling service (no torch)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     serve.add_argument("--repository", required=True, help="model repository (detmatch-export)")
     serve.add_argument("--store", required=True, help="label store directory")
     serve.add_argument("--port", type=int, default=50051, help="0 picks a free port")
     serve.add_argument("--host", default=os.environ.get(HOST_ENV) or "127.0.0.1",
-                       help=f"address to bind, e.g. 0.0.0.0 for all interfaces (default: "
-                       f"${HOST_ENV}, else 127.0.0.1)")  # fmt: skip
-    serve.add_argument("--workers", type=int, default=4, help="concurrent requests")
+                       help=f"address to bind: 0.0.0.0 (or ::) listens on every interface, as a "
+                       f"container must (default: ${HOST_ENV}, else 127.0.0.1)")  # fmt: skip
+    serve.add_argument("--workers", type=int, default=4,
+                       help="inference threads: frames decoded and labeled at once")  # fmt: skip
+    serve.add_argument("--threads", type=int, default=0,
+                       help="onnxruntime threads per model run; 0: the CPUs this process may "
+                       "use (its CPU set and its cgroup's CPU quota)")  # fmt: skip
     serve.add_argument("--shard", default=socket.gethostname().split(".")[0] or "default",
                        help="this replica's label store shard (default: host name)")  # fmt: skip
     serve.add_argument("--max-message-mb", type=int, default=64, help="largest request, MiB")
+    serve.add_argument("--max-image-pixels", type=int, default=3840 * 2160,
+                       help="largest image (width x height), checked before decoding")  # fmt: skip
+    serve.add_argument("--max-concurrent-rpcs", type=int, default=64,
+                       help="labeling calls at once; RESOURCE_EXHAUSTED beyond (health and "
+                       "reflection always answer)")  # fmt: skip
+    serve.add_argument("--receive-timeout-s", type=float, default=30.0,
+                       help="a request message must arrive within this; slower clients get "
+                       "DEADLINE_EXCEEDED")  # fmt: skip
     serve.add_argument("--tls-cert", help="PEM server certificate (with --tls-key)")
     serve.add_argument("--tls-key", help="PEM server private key")
     serve.add_argument("--token-env", default="DETMATCH_TOKEN",
-                       help="variable holding the bearer token (unset: no auth)")  # fmt: skip
+                       help="variable holding the bearer token clients must send; the server "
+                       "refuses to start when it is unset or empty, unless --no-auth")  # fmt: skip
+    serve.add_argument("--no-auth", action="store_true",
+                       help="run without authentication (any client reaching the port may "
+                       "label and store)")  # fmt: skip
     serve.add_argument("--metrics-port", type=int, help="Prometheus /metrics port (off if unset)")
-    serve.add_argument("--metrics-host", help="address of /metrics (default: --host's)")
+    serve.add_argument("--metrics-host",
+                       help="address the metrics endpoint binds (default: --host's; 0.0.0.0: "
+                       "scrapable from other hosts)")  # fmt: skip
     serve.add_argument("--poll-s", type=float, default=2.0, help="model repository poll period")
     serve.add_argument("--grace-s", type=float, default=30.0, help="drain time after SIGTERM")
     serve.set_defaults(handler=_serve)
@@ -413,10 +464,27 @@ def build_parser() -> argparse.ArgumentParser:
     store = commands.add_parser("store", help="the label store of `detmatch serve`")
     store_commands = store.add_subparsers(dest="store_command", required=True, metavar="ACTION")
     store_export = store_commands.add_parser(
-        "export", help="a KITTI-layout data set of every stored frame and its labels"
+        "export",
+        help="a KITTI-layout data set of the stored frames and their labels, with train and "
+        "val ImageSets (`detmatch train --data OUT` runs on it)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     store_export.add_argument("--store", required=True, help="label store directory")
     store_export.add_argument("--out", required=True, help="output directory (KITTI layout)")
+    store_export.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.1,
+        help="share of frames held out in ImageSets/val.txt, chosen by a hash of each key (a "
+        "frame keeps its side as the store grows)",
+    )
+    store_export.add_argument("--seed", type=int, default=0, help="salt of that hash")
+    store_export.add_argument(
+        "--namespace",
+        action="append",
+        help="export only this namespace (repeatable); frame ids stay bare when one namespace "
+        "is exported, else NAMESPACE__ID",
+    )
     store_export.set_defaults(handler=_store_export)
 
     evaluate = commands.add_parser("eval", help="KITTI object-benchmark evaluation")

@@ -19,16 +19,22 @@ def main() -> int:
     parser.add_argument("--data", required=True, help="KITTI-layout directory (training/...)")
     parser.add_argument("--frame", required=True, help="frame id, e.g. 000000")
     parser.add_argument("--ca-cert", help="PEM certificate to verify the server (TLS)")
+    parser.add_argument(
+        "--namespace", help="the data set the frame id belongs to (default: default)"
+    )
     parser.add_argument("--no-store", action="store_true", help="label without storing")
     args = parser.parse_args()
     root_certificates = Path(args.ca_cert).read_bytes() if args.ca_cert else None
     token = os.environ.get("DETMATCH_TOKEN") or None
     with LabelingClient(args.target, token=token, root_certificates=root_certificates) as client:
-        response = client.label_kitti_frame(Path(args.data), args.frame, store=not args.no_store)
+        response = client.label_kitti_frame(
+            Path(args.data), args.frame, store=not args.no_store, namespace=args.namespace
+        )
+    outcome = pb2.StoreOutcome.Name(response.store_outcome).removeprefix("STORE_OUTCOME_")
     print(
-        f"frame {response.frame_id}: {len(response.labels)} labels from model version "
-        f"{response.model_version} in {response.timing.total_s * 1000:.1f} ms"
-        f"{' (stored)' if response.stored else ''}"
+        f"frame {response.namespace}/{response.frame_id}: {len(response.labels)} labels from "
+        f"model version {response.model_version} in {response.timing.total_s * 1000:.1f} ms"
+        f"{f' (stored: {outcome.lower()})' if response.stored else ''}"
     )
     for label in response.labels:
         b = label.box_3d

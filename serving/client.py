@@ -61,8 +61,33 @@ class LabelingClient:
         score_threshold_2d: float | None = None,
         score_threshold_3d: float | None = None,
         timeout_s: float | None = None,
+        namespace: str | None = None,
     ):
-        """image: PNG or JPEG bytes; points: (N, 4) LiDAR points (or their wire bytes)."""
+        """image: PNG or JPEG bytes; points: (N, 4) LiDAR points (or their wire bytes);
+        namespace: the data set the frame id belongs to (None: the server's default)."""
+        request = self.request(
+            frame_id, image, points, calib, store=store, tau_hung=tau_hung,
+            score_threshold_2d=score_threshold_2d, score_threshold_3d=score_threshold_3d,
+            namespace=namespace,
+        )  # fmt: skip
+        return self.stub.LabelFrame(
+            request, timeout=timeout_s or self.timeout_s, metadata=self.metadata
+        )
+
+    @staticmethod
+    def request(
+        frame_id: str,
+        image: bytes,
+        points: np.ndarray | bytes,
+        calib: Calibration,
+        *,
+        store: bool = True,
+        tau_hung: float | None = None,
+        score_threshold_2d: float | None = None,
+        score_threshold_3d: float | None = None,
+        namespace: str | None = None,
+    ):
+        """The LabelFrameRequest that label_frame sends."""
         options = pb2.LabelOptions(store=store)
         for name, value in (
             ("tau_hung", tau_hung),
@@ -78,19 +103,32 @@ class LabelingClient:
             calibration=calibration_message(calib),
             options=options,
         )
-        return self.stub.LabelFrame(
-            request, timeout=timeout_s or self.timeout_s, metadata=self.metadata
-        )
+        if namespace is not None:
+            request.namespace = namespace
+        return request
 
     def label_kitti_frame(
         self, root: str | os.PathLike, frame_id: str, *, send_as: str | None = None, **kwargs
     ):
         """Send frame_id of a KITTI-layout directory (training/image_2, velodyne, calib),
         under the id send_as if given; kwargs as label_frame's."""
+        timeout_s = kwargs.pop("timeout_s", None)
+        request = self.kitti_request(root, frame_id, send_as=send_as, **kwargs)
+        return self.stub.LabelFrame(
+            request, timeout=timeout_s or self.timeout_s, metadata=self.metadata
+        )
+
+    @staticmethod
+    def kitti_request(
+        root: str | os.PathLike, frame_id: str, *, send_as: str | None = None, **kwargs
+    ):
+        """The request label_kitti_frame sends; kwargs as request's."""
         dataset = KittiDataset(Path(root))
         frame = dataset.load_frame(frame_id, with_labels=False)
         image = dataset.image_path(frame_id).read_bytes()
-        return self.label_frame(send_as or frame_id, image, frame.points, frame.calib, **kwargs)
+        return LabelingClient.request(
+            send_as or frame_id, image, frame.points, frame.calib, **kwargs
+        )
 
     def model_info(self):
         return self.stub.GetModelInfo(

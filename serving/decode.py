@@ -2,38 +2,70 @@
 
 Images: PNG or JPEG bytes -> (H, W, 3) uint8 RGB. Points: raw little-endian float32 bytes,
 N x 4 (x, y, z, intensity) -> (N, 4) float32. Calibration: P2 (12), R0_rect (9),
-Tr_velo_to_cam (12) row-major doubles -> Calibration.
+Tr_velo_to_cam (12) row-major doubles -> Calibration, refused when a matrix cannot be a
+camera projection or a rigid transform. Frame ids and namespaces: 1-64 letters, digits, '_'
+or '-'. Every error is `InvalidInput` whose message starts with the field's name, and never
+echoes more than a short excerpt of what the client sent.
 """
 
 from __future__ import annotations
 
 import io
-import math
 from collections.abc import Sequence
 
 import numpy as np
 from PIL import Image
 
-from detmatch.data.kitti import validate_frame_id
+from detmatch.data.kitti import FRAME_ID_PATTERN
 from detmatch.structures import Calibration
-from serving.errors import InputTooLarge, InvalidInput
+from serving.errors import InvalidInput
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
-# Decompression-bomb guard: far above a KITTI frame (1242 x 375) or a 4K camera.
-MAX_IMAGE_PIXELS = 8192 * 8192
+# Decompression-bomb guard, checked on the header before any pixel is decoded: 4K UHD
+# (3840 x 2160), 18x a KITTI frame (1242 x 375) and 3.4x a Waymo front camera (1920 x 1280).
+DEFAULT_MAX_IMAGE_PIXELS = 3840 * 2160
 CALIBRATION_SIZES = {"p2": 12, "r0_rect": 9, "tr_velo_to_cam": 12}
+# No real calibration holds a value this large (KITTI's largest is P2's focal length, ~721).
+MAX_CALIBRATION_VALUE = 1e6
+# A matrix whose smallest singular value is below this fraction of its largest is singular.
+MIN_SINGULAR_RATIO = 1e-9
+# R0_rect and Tr_velo_to_cam's left 3 x 3 must be rotations to this tolerance (KITTI's files
+# print six decimals, so theirs are orthonormal to about 1e-6).
+ROTATION_TOLERANCE = 1e-2
+DEFAULT_NAMESPACE = "default"
+EXCERPT_CHARS = 64
+
+
+def excerpt(value: str, limit: int = EXCERPT_CHARS) -> str:
+    """repr(value), cut to `limit` characters with the full length said: errors never echo a
+    whole hostile field (a 16 KB id would not fit in a gRPC status)."""
+    if len(value) <= limit:
+        return repr(value)
+    return f"{value[:limit]!r}... ({len(value)} characters)"
+
+
+def decode_id(value: str, field: str) -> str:
+    """A frame id or namespace: 1-64 letters, digits, '_' or '-' (a file name stem)."""
+    if isinstance(value, str) and FRAME_ID_PATTERN.match(value):
+        return value
+    shown = excerpt(value) if isinstance(value, str) else type(value).__name__
+    raise InvalidInput(f"{field}: invalid {field.replace('_', ' ')} {shown}: use 1-64 "
+                       "letters, digits, '_' or '-'")  # fmt: skip
 
 
 def decode_frame_id(frame_id: str) -> str:
-    try:
-        return validate_frame_id(frame_id)
-    except ValueError as error:
-        raise InvalidInput(f"frame_id: {error}") from None
+    return decode_id(frame_id, "frame_id")
 
 
-def decode_image(data: bytes) -> tuple[np.ndarray, str]:
-    """PNG or JPEG bytes -> ((H, W, 3) uint8 RGB, 'png' or 'jpeg')."""
+def decode_namespace(namespace: str | None) -> str:
+    """The key's data-set namespace; empty or None is DEFAULT_NAMESPACE."""
+    return decode_id(namespace, "namespace") if namespace else DEFAULT_NAMESPACE
+
+
+def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> tuple[np.ndarray, str]:
+    """PNG or JPEG bytes -> ((H, W, 3) uint8 RGB, 'png' or 'jpeg'). The header's size is
+    checked against max_pixels before anything is decoded."""
     if not data:
         raise InvalidInput("image: empty; send PNG or JPEG bytes")
     if data.startswith(PNG_MAGIC):
@@ -43,18 +75,24 @@ def decode_image(data: bytes) -> tuple[np.ndarray, str]:
     else:
         raise InvalidInput(f"image: not PNG or JPEG (first bytes {data[:8].hex()})")
     try:
-        with Image.open(io.BytesIO(data)) as image:
-            width, height = image.size
-            if width * height > MAX_IMAGE_PIXELS:
-                raise InputTooLarge(
-                    f"image: {width} x {height} pixels exceeds the limit of {MAX_IMAGE_PIXELS}"
+        with Image.open(io.BytesIO(data), formats=(kind.upper(),)) as image:
+            width, height = image.size  # the header's, nothing decoded yet
+            if width * height > max_pixels:
+                raise InvalidInput(
+                    f"image: {width} x {height} pixels ({width * height}) exceeds the limit of "
+                    f"{max_pixels} pixels"
                 )
             pixels = np.asarray(image.convert("RGB"))
-    except InputTooLarge:
+    except InvalidInput:
         raise
-    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-        raise InvalidInput(f"image: cannot decode {kind.upper()} data: {error}") from None
-    if pixels.shape[0] < 1 or pixels.shape[1] < 1:
+    except MemoryError:
+        raise
+    except Exception as error:  # noqa: BLE001 - any failure to decode client bytes is bad input
+        raise InvalidInput(
+            f"image: cannot decode {kind.upper()} data: {type(error).__name__}: "
+            f"{excerpt(str(error), 200)}"
+        ) from None
+    if pixels.ndim != 3 or pixels.shape[0] < 1 or pixels.shape[1] < 1:
         raise InvalidInput(f"image: empty image of shape {pixels.shape}")
     return pixels, kind
 
@@ -80,22 +118,47 @@ def decode_points(data: bytes) -> np.ndarray:
 def decode_calibration(
     p2: Sequence[float], r0_rect: Sequence[float], tr_velo_to_cam: Sequence[float]
 ) -> Calibration:
-    """Row-major P2 (12), R0_rect (9), Tr_velo_to_cam (12) -> Calibration."""
-    values = {"p2": p2, "r0_rect": r0_rect, "tr_velo_to_cam": tr_velo_to_cam}
+    """Row-major P2 (12), R0_rect (9), Tr_velo_to_cam (12) -> Calibration.
+
+    Refused (InvalidInput naming the matrix): a wrong number of values, NaN or Inf, a value
+    beyond MAX_CALIBRATION_VALUE, a P2 whose left 3 x 3 block is singular (it cannot project),
+    an R0_rect or a Tr_velo_to_cam rotation that is not a rotation (ROTATION_TOLERANCE)."""
+    given = {"p2": p2, "r0_rect": r0_rect, "tr_velo_to_cam": tr_velo_to_cam}
+    matrices = {}
     for name, expected in CALIBRATION_SIZES.items():
-        got = len(values[name])
+        got = len(given[name])
         if got != expected:
             raise InvalidInput(f"calibration.{name}: expected {expected} values, got {got}")
-        if not all(math.isfinite(v) for v in values[name]):
+        values = np.asarray(given[name], np.float64)
+        if not np.isfinite(values).all():
             raise InvalidInput(f"calibration.{name}: holds NaN or Inf")
-    try:
-        return Calibration.from_flat(
-            np.asarray(p2, np.float64),
-            np.asarray(r0_rect, np.float64),
-            np.asarray(tr_velo_to_cam, np.float64),
+        largest = float(np.abs(values).max())
+        if largest > MAX_CALIBRATION_VALUE:
+            raise InvalidInput(
+                f"calibration.{name}: a value of magnitude {largest:.3g} is beyond "
+                f"{MAX_CALIBRATION_VALUE:.0e}; not a calibration"
+            )
+        matrices[name] = values.reshape(3, -1)
+    singular = np.linalg.svd(matrices["p2"][:, :3], compute_uv=False)
+    if singular[0] == 0.0 or singular[-1] < MIN_SINGULAR_RATIO * singular[0]:
+        raise InvalidInput(
+            "calibration.p2: rank-deficient (its left 3 x 3 block is singular, singular values "
+            f"{', '.join(f'{s:.3g}' for s in singular)}); it cannot project points"
         )
-    except ValueError as error:
-        raise InvalidInput(f"calibration: {error}") from None
+    _check_rotation("r0_rect", matrices["r0_rect"])
+    _check_rotation("tr_velo_to_cam", matrices["tr_velo_to_cam"][:, :3])
+    return Calibration(matrices["p2"], matrices["r0_rect"], matrices["tr_velo_to_cam"])
+
+
+def _check_rotation(name: str, rotation: np.ndarray) -> None:
+    error = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+    determinant = float(np.linalg.det(rotation))
+    if error > ROTATION_TOLERANCE or determinant <= 0:
+        what = "rotation" if name == "r0_rect" else "rotation part (left 3 x 3)"
+        raise InvalidInput(
+            f"calibration.{name}: its {what} is not a rotation (|R R^T - I| = {error:.3g}, "
+            f"det {determinant:.3g}); rank-deficient or degenerate"
+        )
 
 
 def encode_points(points: np.ndarray) -> bytes:

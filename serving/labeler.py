@@ -33,7 +33,7 @@ from serving.repository import (
     RepositoryError,
     load_manifest,
     served_version,
-    verify_checksums,
+    verify_version,
     version_dir,
 )
 from serving.sessions import SessionSettings, make_session
@@ -77,11 +77,12 @@ class Labeler:
         settings: SessionSettings | None = None,
         check_files: bool = True,
     ) -> None:
-        """path: a version directory; check_files: verify the manifest's checksums first."""
+        """path: a version directory; check_files: verify it first (`verify_version`: the
+        manifest names this version, the files match their checksums)."""
         self.path = Path(path)
         self.manifest = load_manifest(self.path)
         if check_files:
-            verify_checksums(self.path, self.manifest)
+            verify_version(self.path, self.manifest)
         spec_2d, spec_3d = self.manifest.model_2d, self.manifest.model_3d
         self.version: str = self.manifest.version
         self.classes: tuple[str, ...] = self.manifest.classes

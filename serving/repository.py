@@ -94,9 +94,13 @@ def served_version(root: str | os.PathLike) -> str | None:
 
 
 def promote(root: str | os.PathLike, version: str | int) -> str:
-    """Mark a published version as allowed to serve; returns its name. Idempotent."""
+    """Mark a published version as allowed to serve; returns its name. Idempotent. A version
+    that fails `verify_version` is refused (RepositoryError saying why)."""
     path = version_dir(root, version)
-    load_manifest(path)
+    try:
+        verify_version(path)
+    except RepositoryError as error:
+        raise RepositoryError(f"refusing to promote {path.name}: {error}") from None
     record = {"promoted_at": _utc_now()}
     atomic_write_bytes(path / PROMOTED_FILE, (json.dumps(record) + "\n").encode(), durable=True)
     return path.name
@@ -134,6 +138,21 @@ def verify_checksums(path: str | os.PathLike, manifest: Manifest | None = None) 
             raise RepositoryError(f"{file} is listed in the manifest but missing")
         if file.stat().st_size != expected.bytes or sha256_file(file) != expected.sha256:
             raise RepositoryError(f"{file} does not match its checksum in the manifest")
+
+
+def verify_version(path: str | os.PathLike, manifest: Manifest | None = None) -> Manifest:
+    """What a version must pass to be promoted or served: a valid manifest that names the
+    version's own directory (a hand-copied folder keeps the version it was copied from) and
+    files that match their checksums. Returns the manifest."""
+    path = Path(path)
+    manifest = load_manifest(path) if manifest is None else manifest
+    if manifest.version != path.name:
+        raise RepositoryError(
+            f"{path / 'manifest.json'} names version {manifest.version}, not {path.name}: a "
+            "version directory must be published by detmatch-export, not copied by hand"
+        )
+    verify_checksums(path, manifest)
+    return manifest
 
 
 @contextlib.contextmanager

@@ -8,6 +8,7 @@ request in flight, and every answer names the version that produced it.
 
 from __future__ import annotations
 
+import io
 import logging
 import threading
 import time
@@ -15,10 +16,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from serving.decode import decode_calibration, decode_frame_id, decode_image, decode_points
-from serving.errors import InvalidInput, ModelUnavailable
+import numpy as np
+
+from detmatch.structures import Calibration
+from serving.decode import (
+    DEFAULT_MAX_IMAGE_PIXELS,
+    decode_calibration,
+    decode_frame_id,
+    decode_image,
+    decode_namespace,
+    decode_points,
+)
+from serving.errors import InvalidInput, ModelUnavailable, StoreError
 from serving.labeler import FrameLabels, Labeler
-from serving.store import LabelStore, StoredFrame
+from serving.store import LabelStore, PutResult
 
 log = logging.getLogger("detmatch.serving")
 
@@ -63,18 +74,91 @@ class LabelOptions:
 
 
 @dataclass(frozen=True)
+class DecodedFrame:
+    """A request's fields, decoded and checked. image, points_bytes: the bytes as sent (PNG or
+    JPEG; little-endian float32 N x 4, what the store writes without another copy)."""
+
+    namespace: str
+    frame_id: str
+    pixels: np.ndarray
+    kind: str
+    image: bytes
+    points: np.ndarray
+    calib: Calibration
+    points_bytes: bytes = b""
+
+    def png(self) -> bytes:
+        """The image as PNG bytes (what the store keeps): as sent, or re-encoded losslessly."""
+        return self.image if self.kind == "png" else _png(self.pixels)
+
+
+@dataclass(frozen=True)
 class LabelResult:
+    """stored: what the store did (None: not stored); timings: seconds per stage."""
+
+    namespace: str
     frame_id: str
     result: FrameLabels
-    stored: StoredFrame | None
-    newly_stored: bool
+    stored: PutResult | None
     timings: dict[str, float] = field(default_factory=dict)
 
 
 class LabelingService:
-    def __init__(self, slot: ModelSlot, store: LabelStore | None) -> None:
+    """Decode, label, store: each step callable on its own (the gRPC server runs decoding and
+    labeling on its inference threads and storing on its I/O threads), or all three at once
+    with `label_frame`."""
+
+    def __init__(
+        self,
+        slot: ModelSlot,
+        store: LabelStore | None,
+        max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS,
+    ) -> None:
         self.slot = slot
         self.store = store
+        self.max_image_pixels = max_image_pixels
+
+    def decode(
+        self,
+        frame_id: str,
+        image: bytes,
+        points: bytes,
+        p2: Sequence[float],
+        r0_rect: Sequence[float],
+        tr_velo_to_cam: Sequence[float],
+        namespace: str | None = None,
+    ) -> DecodedFrame:
+        """InvalidInput naming the field for anything malformed."""
+        namespace = decode_namespace(namespace)
+        frame_id = decode_frame_id(frame_id)
+        pixels, kind = decode_image(image, self.max_image_pixels)
+        cloud = decode_points(points)
+        calib = decode_calibration(p2, r0_rect, tr_velo_to_cam)
+        return DecodedFrame(namespace, frame_id, pixels, kind, image, cloud, calib, points)
+
+    def label(self, frame: DecodedFrame, options: LabelOptions = LabelOptions()) -> FrameLabels:
+        """Label with the served model, taken once (a swap never changes it mid-request).
+        ModelUnavailable without a model; InvalidInput for bad options."""
+        labeler = self.slot.labeler
+        try:
+            return labeler.label(
+                frame.pixels,
+                frame.points,
+                frame.calib,
+                tau_hung=options.tau_hung,
+                score_threshold_2d=options.score_threshold_2d,
+                score_threshold_3d=options.score_threshold_3d,
+            )
+        except ValueError as error:
+            raise InvalidInput(f"options.{error}") from None
+
+    def store_labels(self, frame: DecodedFrame, result: FrameLabels) -> PutResult:
+        if self.store is None:
+            raise StoreError("this server has no label store")
+        points = frame.points_bytes or frame.points
+        return self.store.put(
+            frame.frame_id, frame.png(), points, frame.calib, result, frame.namespace
+        )
 
     def label_frame(
         self,
@@ -85,32 +169,18 @@ class LabelingService:
         r0_rect: Sequence[float],
         tr_velo_to_cam: Sequence[float],
         options: LabelOptions = LabelOptions(),
+        namespace: str | None = None,
     ) -> LabelResult:
-        """Decode, label and (unless options.store is False) store one frame. Raises
-        InvalidInput/InputTooLarge for bad input, ModelUnavailable without a model."""
+        """Decode, label and (unless options.store is False or there is no store) store one
+        frame. Raises InvalidInput for bad input, ModelUnavailable without a model."""
         start = time.perf_counter()
-        frame_id = decode_frame_id(frame_id)
-        pixels, kind = decode_image(image)
-        cloud = decode_points(points)
-        calib = decode_calibration(p2, r0_rect, tr_velo_to_cam)
+        frame = self.decode(frame_id, image, points, p2, r0_rect, tr_velo_to_cam, namespace)
         decoded = time.perf_counter()
-        labeler = self.slot.labeler  # fixed for the whole request
-        try:
-            result = labeler.label(
-                pixels,
-                cloud,
-                calib,
-                tau_hung=options.tau_hung,
-                score_threshold_2d=options.score_threshold_2d,
-                score_threshold_3d=options.score_threshold_3d,
-            )
-        except ValueError as error:
-            raise InvalidInput(f"options.{error}") from None
+        result = self.label(frame, options)
         labeled = time.perf_counter()
-        stored, newly = None, False
+        stored = None
         if options.store and self.store is not None:
-            png = image if kind == "png" else _png(pixels)
-            stored, newly = self.store.put(frame_id, png, cloud, calib, result)
+            stored = self.store_labels(frame, result)
         end = time.perf_counter()
         timings = {
             **result.timings,
@@ -118,7 +188,7 @@ class LabelingService:
             "store": end - labeled,
             "total": end - start,
         }
-        return LabelResult(frame_id, result, stored, newly, timings)
+        return LabelResult(frame.namespace, frame.frame_id, result, stored, timings)
 
     def model_info(self) -> dict[str, Any]:
         labeler = self.slot.labeler
@@ -133,9 +203,7 @@ class LabelingService:
         }
 
 
-def _png(pixels) -> bytes:
-    import io
-
+def _png(pixels: np.ndarray) -> bytes:
     from PIL import Image
 
     buffer = io.BytesIO()

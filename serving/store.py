@@ -1,75 +1,125 @@
 """The embedded label store (DESIGN.md §7): KITTI-layout files plus a SQLite index per shard.
 
-    STORE/shards/<shard>/index.sqlite            frame id, model version, time, counts,
-                                                 provenance, file checksums (WAL journal)
-    STORE/shards/<shard>/training/image_2/ID.png
-    STORE/shards/<shard>/training/velodyne/ID.bin
-    STORE/shards/<shard>/training/calib/ID.txt
-    STORE/shards/<shard>/training/label_2/ID.txt KITTI result rows (3D labels in the camera's view)
-    STORE/shards/<shard>/labels/ID.json          every label with costs and provenance
+Layout, schema, migration and crash recovery: `serving.store_layout`; listing, checking and
+exporting every shard: `serving.store_export`. Each server replica writes its own shard, and
+a shard is written by one process at a time (an exclusive lock).
 
-A frame exists once its index row is committed, and the row is committed only after every file
-was written (temporary file, fsync, rename): a killed process leaves at most unreferenced files,
-which the next write of that frame replaces. Writing a frame id that is already indexed
-changes nothing and returns the stored record (retries are idempotent). Each server replica
-writes its own shard; listing and export read every shard (the newest record of an id wins).
+Keys are (namespace, frame id): a namespace is a data set (`kitti-training`, `site-a`;
+`default` when a request names none), so the same frame id in two data sets never collides.
+
+Re-labeling policy: the store keeps one labeling per key, the latest. A `put` of a stored key
+- is UNCHANGED when everything it would store is byte-identical to what is stored (the same
+  model version and thresholds on the same frame: a retry); nothing is written;
+- REPLACES the stored frame and labels otherwise (another model version, other thresholds, or
+  other sensor data under the key), and says which model version it replaced.
+A new key is CREATED.
+
+Durability and group commit: an acknowledged `put` survives SIGKILL and power loss. Each
+caller writes its frame's files to temporary files beside their final names, in its own
+thread. One committer thread takes every frame that is waiting and, for all of them
+together: fsyncs every temporary file and every directory holding them in one concurrent
+round (the file system folds concurrent fsyncs into a few journal commits), commits one
+SQLite transaction (WAL, synchronous=FULL) whose rows list each file's SHA-256, renames the
+temporary files to their final names, and acknowledges. The row is the commit point: a kill
+before it leaves temporary files no row wants (deleted by the next open); a kill after it
+leaves, at worst, durable temporary files holding exactly what a row lists (renamed into
+place by the next open, and read there by `serving.store_export` meanwhile). A replaced
+frame therefore shows either all its old files or all its new ones.
 """
 
 from __future__ import annotations
 
-import hashlib
+import fcntl
 import json
+import logging
 import os
-import shutil
+import queue
+import secrets
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
 
-from detmatch.data.kitti import format_objects, validate_frame_id, write_calib, write_image_set
-from detmatch.files import atomic_write_bytes, fsync_path
+from detmatch.data.kitti import format_objects, validate_frame_id, write_calib
+from detmatch.files import fsync_path
 from detmatch.structures import Calibration
 from serving.errors import StoreError
 from serving.labeler import FrameLabels
 from serving.serialize import label_records, labels_to_json, labels_to_objects_3d
-
-SHARDS_DIR = "shards"
-SELECT_FRAME = "SELECT * FROM frames WHERE frame_id = ?"
-INDEX_FILE = "index.sqlite"
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS frames (
-    frame_id TEXT PRIMARY KEY,
-    model_version TEXT NOT NULL,
-    stored_at REAL NOT NULL,
-    num_labels INTEGER NOT NULL,
-    num_matched INTEGER NOT NULL,
-    num_lidar_only INTEGER NOT NULL,
-    provenance TEXT NOT NULL,
-    files TEXT NOT NULL
+from serving.store_export import check_integrity, export_store, list_frames
+from serving.store_layout import (
+    COLUMNS,
+    LEGACY_NAMESPACE,
+    LOCK_FILE,
+    SHARDS_DIR,
+    StoredFrame,
+    frame_paths,
+    open_index,
+    record_of,
+    recover,
+    sha256,
+    transaction,
 )
-"""
+
+__all__ = [
+    "DEFAULT_NAMESPACE",
+    "LabelStore",
+    "PutResult",
+    "StoreOutcome",
+    "StoredFrame",
+    "check_integrity",
+    "export_store",
+    "list_frames",
+]
+
+log = logging.getLogger("detmatch.serving")
+
+DEFAULT_NAMESPACE = LEGACY_NAMESPACE
+SELECT_FRAME = f"SELECT {', '.join(COLUMNS)} FROM frames WHERE namespace = ? AND frame_id = ?"
+IO_THREADS = 16
+UPSERT = f"INSERT OR REPLACE INTO frames VALUES ({', '.join('?' * len(COLUMNS))})"
+
+
+class StoreOutcome(str, Enum):
+    """What a put did to the store (see the module docstring's policy)."""
+
+    CREATED = "created"
+    UNCHANGED = "unchanged"
+    REPLACED = "replaced"
 
 
 @dataclass(frozen=True)
-class StoredFrame:
-    """One index row. files: relative path -> SHA-256 of every file of the frame."""
+class PutResult:
+    """The key's record after the put; previous_version: the model version whose labels were
+    stored before (None when CREATED)."""
 
-    frame_id: str
-    shard: str
-    model_version: str
-    stored_at: float
-    num_labels: int
-    num_matched: int
-    num_lidar_only: int
-    provenance: list[str]
-    files: dict[str, str]
+    record: StoredFrame
+    outcome: StoreOutcome
+    previous_version: str | None = None
+
+
+@dataclass
+class _Pending:
+    record: StoredFrame
+    temporaries: dict[str, Path]  # relative path -> its temporary file
+    future: Future = field(default_factory=Future)
+
+
+@dataclass
+class CommitStats:
+    """Counters of the committer (benchmarks read them)."""
+
+    batches: int = 0
+    frames: int = 0
 
 
 class LabelStore:
-    """One shard of a label store, safe for concurrent calls from one process's threads."""
+    """One shard of a label store, opened for writing by this process; thread-safe."""
 
     def __init__(self, root: str | os.PathLike, shard: str = "default") -> None:
         self.root = Path(root)
@@ -79,159 +129,266 @@ class LabelStore:
             raise ValueError(f"invalid shard {shard!r}: use letters, digits, '_' or '-'") from None
         self.path = self.root / SHARDS_DIR / self.shard
         self.path.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.Lock()
-        self._db = _connect(self.path / INDEX_FILE)
+        self._lock_file = _lock_shard(self.path)
+        try:
+            self._db = open_index(self.path)
+            records = self._select_all()
+            recovery = recover(self.path, records)
+        except BaseException:
+            self._lock_file.close()
+            raise
+        self._db_lock = threading.Lock()
+        # fsyncs run concurrently: the file system commits concurrent fsyncs in one journal
+        # transaction (ext4, xfs), so a batch's files and directories cost about one.
+        self._io = ThreadPoolExecutor(IO_THREADS, thread_name_prefix=f"store-io-{self.shard}")
+        self._queue: queue.SimpleQueue[_Pending | None] = queue.SimpleQueue()
+        self.stats = CommitStats()
+        self._committer = threading.Thread(
+            target=self._commit_loop, name=f"store-{self.shard}", daemon=True
+        )
+        self._committer.start()
+        self._closed = False
+        log.info(
+            "label store opened",
+            extra={"fields": {"store": str(self.root), "shard": self.shard,
+                              "frames": len(records), "temporary_removed":
+                              recovery.temporary_removed, "rolled_forward":
+                              recovery.rolled_forward, "orphans_removed":
+                              recovery.orphans_removed}},
+        )  # fmt: skip
 
     def close(self) -> None:
-        with self._lock:
+        """Commit what is queued, stop the committer, release the shard."""
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put(None)
+        self._committer.join()
+        self._io.shutdown(wait=True)
+        with self._db_lock:
             self._db.close()
+        self._lock_file.close()
+        log.info(
+            "label store closed",
+            extra={"fields": {"shard": self.shard, "frames_committed": self.stats.frames,
+                              "commits": self.stats.batches}},
+        )  # fmt: skip
 
-    def get(self, frame_id: str) -> StoredFrame | None:
-        frame_id = validate_frame_id(frame_id)
-        with self._lock:
-            row = self._db.execute(SELECT_FRAME, (frame_id,)).fetchone()
-        return None if row is None else _record(row, self.shard)
+    def get(self, frame_id: str, namespace: str = DEFAULT_NAMESPACE) -> StoredFrame | None:
+        key = (validate_frame_id(namespace), validate_frame_id(frame_id))
+        with self._db_lock:
+            row = self._db.execute(SELECT_FRAME, key).fetchone()
+        return None if row is None else record_of(row, self.shard)
 
     def put(
         self,
         frame_id: str,
         image_png: bytes,
-        points: np.ndarray,
+        points: np.ndarray | bytes,
         calib: Calibration,
         result: FrameLabels,
-    ) -> tuple[StoredFrame, bool]:
-        """Store a frame and its labels; (record, True) if written now, (the earlier record,
-        False) if the frame id was already stored. image_png: the image as PNG bytes."""
-        frame_id = validate_frame_id(frame_id)
-        with self._lock:
-            row = self._db.execute(SELECT_FRAME, (frame_id,)).fetchone()
-            if row is not None:
-                return _record(row, self.shard), False
-            try:
-                files = self._write_files(frame_id, image_png, points, calib, result)
-                provenance = [r.provenance_name for r in label_records(result)]
-                matched = int(result.labels.matched.sum())
-                values = (
-                    frame_id,
-                    result.model_version,
-                    time.time(),
-                    len(result),
-                    matched,
-                    len(result) - matched,
-                    json.dumps(provenance),
-                    json.dumps(files, sort_keys=True),
+        namespace: str = DEFAULT_NAMESPACE,
+    ) -> PutResult:
+        """Store a frame and its labels under (namespace, frame_id) and wait until that is
+        durable; the outcome follows the re-labeling policy. image_png: the image as PNG;
+        points: (N, 4) float32, or their little-endian float32 bytes."""
+        namespace, frame_id = validate_frame_id(namespace), validate_frame_id(frame_id)
+        if self._closed:
+            raise StoreError("the label store is closed")
+        contents = _contents(namespace, frame_id, image_png, points, calib, result)
+        token = secrets.token_hex(6)
+        calib_path = frame_paths(namespace, frame_id)["calib"]
+        temporaries: dict[str, Path] = {}
+        try:
+            temporaries[calib_path] = self._temporary(calib_path, token)
+            write_calib(temporaries[calib_path], calib)
+            digests = {r: sha256(d) for r, d in contents.items()}
+            digests[calib_path] = sha256(temporaries[calib_path].read_bytes())
+            stored = self.get(frame_id, namespace)
+            if stored is not None and stored.files == digests:  # a retry: nothing to write
+                _remove(temporaries)
+                return PutResult(stored, StoreOutcome.UNCHANGED, stored.model_version)
+            for relative, data in contents.items():
+                temporaries[relative] = self._temporary(relative, token)
+                with open(temporaries[relative], "wb") as handle:
+                    handle.write(data)  # fsynced by the committer, with the whole batch
+        except OSError as error:
+            _remove(temporaries)
+            raise StoreError(f"cannot store frame {namespace}/{frame_id}: {error}") from error
+        except BaseException:
+            _remove(temporaries)
+            raise
+        matched = int(result.labels.matched.sum())
+        now = time.time()
+        record = StoredFrame(
+            namespace=namespace,
+            frame_id=frame_id,
+            shard=self.shard,
+            model_version=result.model_version,
+            stored_at=now,
+            first_stored_at=now,
+            num_labels=len(result),
+            num_matched=matched,
+            num_lidar_only=len(result) - matched,
+            provenance=[r.provenance_name for r in label_records(result)],
+            files=dict(sorted(digests.items())),
+        )
+        pending = _Pending(record, temporaries)
+        self._queue.put(pending)
+        return pending.future.result()
+
+    def _temporary(self, relative: str, token: str) -> Path:
+        """A temporary file's path beside the file it will become."""
+        target = self.path / relative
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target.with_name(f".{target.name}.{token}.tmp")
+
+    # --- the committer: one batch of frames at a time --------------------------------------------
+
+    def _commit_loop(self) -> None:
+        while True:
+            first = self._queue.get()
+            batch = [first]
+            while True:
+                try:
+                    batch.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            stop = None in batch
+            batch = [p for p in batch if p is not None]
+            if batch:
+                self._commit(batch)
+            if stop:
+                while True:  # puts that raced close() are refused, never left waiting
+                    try:
+                        late = self._queue.get_nowait()
+                    except queue.Empty:
+                        return
+                    if late is not None:
+                        late.future.set_exception(StoreError("the label store is closed"))
+
+    def _commit(self, batch: list[_Pending]) -> None:
+        try:
+            results = self._commit_batch(batch)
+        except (OSError, StoreError) as error:
+            for pending in batch:
+                _remove(pending.temporaries)
+                pending.future.set_exception(
+                    StoreError(f"cannot store frame {pending.record.frame_id}: {error}")
                 )
-                with self._db:
-                    self._db.execute("INSERT INTO frames VALUES (?, ?, ?, ?, ?, ?, ?, ?)", values)
-            except (OSError, sqlite3.Error) as error:
-                raise StoreError(f"cannot store frame {frame_id}: {error}") from error
-            return _record(values, self.shard), True
+            return
+        except Exception as error:  # noqa: BLE001 - a bug fails its batch, not the committer
+            log.exception("label store commit failed", extra={"fields": {"shard": self.shard}})
+            for pending in batch:
+                _remove(pending.temporaries)
+                pending.future.set_exception(error)
+            return
+        self.stats.batches += 1
+        self.stats.frames += len(batch)
+        for pending, result in zip(batch, results, strict=True):
+            pending.future.set_result(result)
 
-    def _write_files(
-        self,
-        frame_id: str,
-        image_png: bytes,
-        points: np.ndarray,
-        calib: Calibration,
-        result: FrameLabels,
-    ) -> dict[str, str]:
-        training = self.path / "training"
-        contents = {
-            f"training/image_2/{frame_id}.png": image_png,
-            f"training/velodyne/{frame_id}.bin": np.asarray(points).astype("<f4").tobytes(),
-            f"training/label_2/{frame_id}.txt": format_objects(
-                labels_to_objects_3d(result, calib), decimals=4
-            ).encode(),
-            f"labels/{frame_id}.json": json.dumps(labels_to_json(frame_id, result)).encode(),
-        }
-        calib_path = training / "calib" / f"{frame_id}.txt"
-        write_calib(calib_path, calib)
-        fsync_path(calib_path)
-        contents[f"training/calib/{frame_id}.txt"] = calib_path.read_bytes()
-        for relative, data in contents.items():
-            if relative.startswith("training/calib/"):
-                continue
-            atomic_write_bytes(self.path / relative, data, durable=True)
-        for directory in {(self.path / r).parent for r in contents}:
-            fsync_path(directory)
-        return {r: hashlib.sha256(d).hexdigest() for r, d in contents.items()}
+    def _commit_batch(self, batch: list[_Pending]) -> list[PutResult]:
+        with self._db_lock:
+            current = {}
+            for key in {p.record.key for p in batch}:
+                row = self._db.execute(SELECT_FRAME, key).fetchone()
+                current[key] = None if row is None else record_of(row, self.shard)
+            results, creates, replaces, discard, rows = [], [], [], [], []
+            for pending in batch:
+                record, before = pending.record, current[pending.record.key]
+                if before is not None and before.files == record.files:
+                    results.append(PutResult(before, StoreOutcome.UNCHANGED, before.model_version))
+                    discard.append(pending)
+                    continue
+                if before is not None:
+                    record = replace(record, first_stored_at=before.first_stored_at)
+                    replaces.append(pending)
+                    outcome = StoreOutcome.REPLACED
+                else:
+                    creates.append(pending)
+                    outcome = StoreOutcome.CREATED
+                results.append(PutResult(record, outcome, before and before.model_version))
+                current[record.key] = record
+                rows.append(record.row())
+            written = creates + replaces
+            files = [t for p in written for t in p.temporaries.values()]
+            directories = {t.parent for t in files}
+            list(self._io.map(fsync_path, [*files, *directories]))  # one concurrent round
+            try:
+                with transaction(self._db):
+                    self._db.executemany(UPSERT, rows)
+            except sqlite3.Error as error:
+                for pending in written:
+                    _remove(pending.temporaries)
+                raise StoreError(f"index: {error}") from error
+            chosen = {id(p) for p in written}
+            for pending in batch:  # in order: a later labeling of a key lands last
+                if id(pending) in chosen:
+                    for relative, temporary in pending.temporaries.items():
+                        os.replace(temporary, self.path / relative)
+        for pending in discard:
+            _remove(pending.temporaries)
+        return results
 
+    def _select_all(self) -> list[StoredFrame]:
+        rows = self._db.execute(f"SELECT {', '.join(COLUMNS)} FROM frames").fetchall()
+        return [record_of(r, self.shard) for r in rows]
 
-def list_frames(root: str | os.PathLike) -> list[StoredFrame]:
-    """Every stored frame of every shard, one record per frame id (the newest), sorted by id."""
-    newest: dict[str, StoredFrame] = {}
-    shards = Path(root) / SHARDS_DIR
-    for index in sorted(shards.glob(f"*/{INDEX_FILE}")):
-        db = sqlite3.connect(f"file:{index}?mode=ro", uri=True)
-        try:
-            rows = db.execute("SELECT * FROM frames").fetchall()
-        finally:
-            db.close()
-        for row in rows:
-            record = _record(row, index.parent.name)
-            if (
-                record.frame_id not in newest
-                or record.stored_at > newest[record.frame_id].stored_at
-            ):
-                newest[record.frame_id] = record
-    return [newest[k] for k in sorted(newest)]
+    def __enter__(self) -> LabelStore:
+        return self
 
-
-def check_integrity(root: str | os.PathLike) -> list[str]:
-    """Problems found: SQLite integrity checks and every indexed file's checksum (empty: fine)."""
-    problems = []
-    for index in sorted((Path(root) / SHARDS_DIR).glob(f"*/{INDEX_FILE}")):
-        db = sqlite3.connect(str(index))
-        try:
-            result = db.execute("PRAGMA integrity_check").fetchone()[0]
-        finally:
-            db.close()
-        if result != "ok":
-            problems.append(f"{index}: {result}")
-    for record in list_frames(root):
-        base = Path(root) / SHARDS_DIR / record.shard
-        for relative, digest in record.files.items():
-            path = base / relative
-            if not path.is_file():
-                problems.append(f"{path}: missing")
-            elif hashlib.sha256(path.read_bytes()).hexdigest() != digest:
-                problems.append(f"{path}: checksum mismatch")
-    return problems
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
-def export_store(root: str | os.PathLike, out: str | os.PathLike) -> int:
-    """A KITTI-layout data set of every stored frame (label_2 holds its labels) plus
-    ImageSets/train.txt and labels/ID.json; returns the number of frames."""
-    root, out = Path(root), Path(out)
-    records = list_frames(root)
-    for record in records:
-        base = root / SHARDS_DIR / record.shard
-        for relative in record.files:
-            target = out / relative
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(base / relative, target)
-    write_image_set(out / "ImageSets" / "train.txt", [r.frame_id for r in records])
-    return len(records)
+def _contents(
+    namespace: str,
+    frame_id: str,
+    image_png: bytes,
+    points: np.ndarray | bytes,
+    calib: Calibration,
+    result: FrameLabels,
+) -> dict[str, bytes]:
+    """relative path -> bytes of every file of a frame but the calibration (whose bytes
+    `write_calib` makes, into its temporary file)."""
+    paths = frame_paths(namespace, frame_id)
+    return {
+        paths["image"]: image_png,
+        paths["points"]: points if isinstance(points, bytes) else _points_bytes(points),
+        paths["label_2"]: format_objects(labels_to_objects_3d(result, calib), decimals=4).encode(),
+        paths["labels"]: json.dumps(labels_to_json(frame_id, result)).encode(),
+    }
 
 
-def _connect(path: Path) -> sqlite3.Connection:
-    db = sqlite3.connect(str(path), check_same_thread=False, timeout=30.0)
-    db.execute("PRAGMA journal_mode=WAL")
-    db.execute("PRAGMA synchronous=FULL")
-    db.execute(SCHEMA)
-    db.commit()
-    return db
+def _points_bytes(points: np.ndarray) -> bytes:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise ValueError(f"points must be (N, 4), got {points.shape}")
+    return points.astype("<f4").tobytes()
 
 
-def _record(row: tuple, shard: str) -> StoredFrame:
-    return StoredFrame(
-        frame_id=row[0],
-        shard=shard,
-        model_version=row[1],
-        stored_at=float(row[2]),
-        num_labels=int(row[3]),
-        num_matched=int(row[4]),
-        num_lidar_only=int(row[5]),
-        provenance=json.loads(row[6]),
-        files=json.loads(row[7]),
-    )
+def _remove(temporaries: dict[str, Path]) -> None:
+    for temporary in temporaries.values():
+        temporary.unlink(missing_ok=True)
+
+
+def _lock_shard(shard_dir: Path):
+    """An exclusive lock on the shard for this process's lifetime (released when it exits,
+    however it exits); StoreError naming the holder when another process has it."""
+    handle = open(shard_dir / LOCK_FILE, "a+")  # noqa: SIM115 - held until close()
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "unknown"
+        handle.close()
+        raise StoreError(
+            f"shard {shard_dir.name} of {shard_dir.parent.parent} is open in another process "
+            f"(pid {holder}); give each server replica its own --shard"
+        ) from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    return handle

@@ -1,5 +1,6 @@
 """Fixtures of the gRPC service tests: a served labeler of the tiny exported model, a running
-in-process server on 127.0.0.1 port 0, and `detmatch serve` in a torch-free subprocess."""
+in-process server on 127.0.0.1 port 0 (the asyncio server on a thread of its own), and
+`detmatch serve` in a torch-free subprocess."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import pytest
 
 from serving.labeler import Labeler
 from serving.repository import promote
-from serving.server import ServerConfig, create_server
+from serving.server import BackgroundServer, ServerConfig
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore
 from tests.conftest import REPO
@@ -35,7 +36,7 @@ class Running:
     port: int
     service: LabelingService
     store_root: Path
-    health: object
+    background: BackgroundServer
 
     @property
     def target(self) -> str:
@@ -54,13 +55,18 @@ def running_server(
     slot: ModelSlot, store_root: Path, config: ServerConfig | None = None
 ) -> Iterator[Running]:
     store = LabelStore(store_root, "s0")
-    service = LabelingService(slot, store)
-    server, port, health = create_server(service, config or ServerConfig())
-    server.start()
+    config = config or ServerConfig()
+    service = LabelingService(slot, store, config.max_image_pixels)
+    background = BackgroundServer(service, config)
     try:
-        yield Running(port, service, store_root, health)
+        port = background.start()
+    except BaseException:
+        store.close()
+        raise
+    try:
+        yield Running(port, service, store_root, background)
     finally:
-        server.stop(None).wait()
+        background.stop()
         store.close()
 
 
@@ -78,16 +84,18 @@ def copy_repository(source: Path, target: Path) -> Path:
 
 
 def add_version(root: Path, version: str, corrupt: bool = False) -> None:
-    """A copy of version 000001 as `version`, promoted (corrupt: its 3D graph truncated)."""
+    """A copy of version 000001 as `version`, promoted (corrupt: its 3D graph truncated after
+    the promotion, as a failing disk or a hand edit would)."""
     path = root / version
     shutil.copytree(root / "000001", path)
+    (path / "PROMOTED").unlink(missing_ok=True)
     manifest = json.loads((path / "manifest.json").read_text())
     manifest["version"] = version
     (path / "manifest.json").write_text(json.dumps(manifest))
+    promote(root, version)
     if corrupt:
         model = path / manifest["models"]["detector3d"]["file"]
         model.write_bytes(model.read_bytes()[:100])
-    promote(root, version)
 
 
 def wait_until_serving(target: str, timeout_s: float = 60.0) -> None:
@@ -115,10 +123,13 @@ TORCH_FREE_SERVE = (
 
 @contextlib.contextmanager
 def serve_process(
-    repository: Path, store: Path, *args: str
+    repository: Path, store: Path, *args: str, env: dict[str, str] | None = None
 ) -> Iterator[tuple[subprocess.Popen, str]]:
-    """`detmatch serve` in a subprocess that cannot import torch; yields (process, target)."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    """`detmatch serve` in a subprocess that cannot import torch; yields (process, target).
+    Without a token in env, the server runs with --no-auth."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO), **(env or {})}
+    if "--no-auth" not in args and not env.get("DETMATCH_TOKEN"):
+        args = ("--no-auth", *args)
     command = [sys.executable, "-c", TORCH_FREE_SERVE, "--repository", str(repository),
                "--store", str(store), "--port", "0", "--shard", "s0", *args]  # fmt: skip
     process = subprocess.Popen(

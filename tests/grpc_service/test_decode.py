@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
+import io
+import re
+
 import grpc
 import numpy as np
 import pytest
+from PIL import Image
 
 from detmatch.data.kitti import KittiFormatError
-from serving.decode import decode_calibration, decode_image, decode_points, encode_points
+from serving.decode import (
+    DEFAULT_MAX_IMAGE_PIXELS,
+    decode_calibration,
+    decode_frame_id,
+    decode_image,
+    decode_namespace,
+    decode_points,
+    encode_points,
+)
 from serving.errors import (
     InputTooLarge,
     InvalidInput,
@@ -15,6 +27,7 @@ from serving.errors import (
     StoreError,
     status_for,
 )
+from tests.conftest import KITTI_SAMPLE
 
 
 def test_points_round_trip_little_endian():
@@ -26,24 +39,109 @@ def test_points_round_trip_little_endian():
         decode_points(np.array([[0, 0, np.inf, 0]], "<f4").tobytes())
 
 
+def _kitti_calibration() -> dict[str, list[float]]:
+    from detmatch.data.kitti import read_calib
+
+    calib = read_calib(KITTI_SAMPLE / "training" / "calib" / "000000.txt")
+    return {"p2": calib.P2.ravel().tolist(), "r0_rect": calib.R0_rect.ravel().tolist(),
+            "tr_velo_to_cam": calib.Tr_velo_to_cam.ravel().tolist()}  # fmt: skip
+
+
 def test_calibration_sizes_are_checked():
-    calib = decode_calibration([1.0] * 12, np.eye(3).ravel().tolist(), [0.0] * 12)
+    values = _kitti_calibration()
+    calib = decode_calibration(**values)
     assert calib.P2.shape == (3, 4)
     with pytest.raises(InvalidInput, match="calibration.r0_rect: expected 9 values, got 8"):
-        decode_calibration([1.0] * 12, [0.0] * 8, [0.0] * 12)
+        decode_calibration(**{**values, "r0_rect": [0.0] * 8})
 
 
-def test_images_beyond_the_pixel_limit_are_resource_exhausted(monkeypatch):
-    import io
+def _degenerate() -> dict[str, tuple[str, dict]]:
+    values = _kitti_calibration()
+    p2 = np.asarray(values["p2"]).reshape(3, 4)
+    rank_2 = p2.copy()
+    rank_2[2, :3] = rank_2[0, :3]
+    scaled_rotation = np.asarray(values["r0_rect"]) * 3.0
+    return {
+        "all-zero P2": ("calibration.p2: rank-deficient", {"p2": [0.0] * 12}),
+        "all-zero R0_rect": ("calibration.r0_rect", {"r0_rect": [0.0] * 9}),
+        "all-zero Tr": ("calibration.tr_velo_to_cam", {"tr_velo_to_cam": [0.0] * 12}),
+        "rank-2 P2": ("calibration.p2: rank-deficient", {"p2": rank_2.ravel().tolist()}),
+        "1e308 in P2": ("calibration.p2: a value of magnitude 1e+308", {"p2": [1e308] * 12}),
+        "1e300 in Tr": ("calibration.tr_velo_to_cam", {"tr_velo_to_cam": [1e300] + [0.0] * 11}),
+        "scaled R0_rect": (
+            "calibration.r0_rect: its rotation is not a rotation",
+            {"r0_rect": scaled_rotation.tolist()},
+        ),  # fmt: skip
+        "reflection in Tr": (
+            "calibration.tr_velo_to_cam",
+            {"tr_velo_to_cam": (np.diag([1.0, 1.0, -1.0, 0.0])[:3].ravel().tolist())},
+        ),  # fmt: skip
+        "NaN in R0": ("calibration.r0_rect: holds NaN", {"r0_rect": [float("nan")] * 9}),
+    }
 
-    from PIL import Image
 
+@pytest.mark.parametrize("case", sorted(_degenerate()))
+def test_degenerate_calibrations_are_refused_naming_the_matrix(case):
+    """All-zero, rank-deficient, absurd (1e308) or non-rigid matrices cannot be a camera and a
+    LiDAR mount; they were accepted (and stored) before."""
+    message, change = _degenerate()[case]
+    with pytest.raises(InvalidInput, match=re.escape(message)):
+        decode_calibration(**{**_kitti_calibration(), **change})
+
+
+def test_the_synthetic_calibrations_are_accepted(synth_root):
+    from detmatch.data.kitti import KittiDataset
+
+    dataset = KittiDataset(synth_root)
+    for frame_id in dataset.ids():
+        calib = dataset.load_frame(frame_id, with_labels=False).calib
+        decode_calibration(calib.P2.ravel(), calib.R0_rect.ravel(), calib.Tr_velo_to_cam.ravel())
+
+
+def _png(width: int, height: int, mode: str = "RGB") -> bytes:
     buffer = io.BytesIO()
-    Image.new("RGB", (30, 20)).save(buffer, format="PNG")
-    assert decode_image(buffer.getvalue())[0].shape == (20, 30, 3)
-    monkeypatch.setattr("serving.decode.MAX_IMAGE_PIXELS", 599)
-    with pytest.raises(InputTooLarge, match="30 x 20 pixels exceeds"):
-        decode_image(buffer.getvalue())
+    Image.new(mode, (width, height)).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def test_an_image_over_the_pixel_limit_is_refused_before_decoding(monkeypatch):
+    """The header's size is checked first: a 100 KB PNG that would decode to 8192 x 8192
+    (a 200 MB array) is INVALID_ARGUMENT naming its size, and nothing is decoded."""
+    assert decode_image(_png(30, 20), max_pixels=600)[0].shape == (20, 30, 3)
+    with pytest.raises(InvalidInput, match="image: 30 x 20 pixels .* exceeds the limit of 599"):
+        decode_image(_png(30, 20), max_pixels=599)
+    bomb = _png(8192, 8192, "L")
+    assert len(bomb) < 200_000
+    decoded = []
+    monkeypatch.setattr(Image.Image, "load", lambda self: decoded.append(self) or None)
+    with pytest.raises(InvalidInput, match="image: 8192 x 8192 pixels") as caught:
+        decode_image(bomb)
+    assert decoded == []
+    assert status_for(caught.value)[0] == grpc.StatusCode.INVALID_ARGUMENT
+    assert DEFAULT_MAX_IMAGE_PIXELS >= 2 * 1920 * 1280  # KITTI and Waymo fit comfortably
+
+
+@pytest.mark.parametrize("mode", ["I;16", "P", "LA", "RGBA", "1", "CMYK"])
+def test_odd_image_modes_decode_to_rgb_or_are_refused(mode):
+    image = Image.new(mode, (8, 6))
+    buffer = io.BytesIO()
+    kind = "JPEG" if mode == "CMYK" else "PNG"
+    image.save(buffer, format=kind)
+    pixels, _ = decode_image(buffer.getvalue())
+    assert pixels.shape == (6, 8, 3) and pixels.dtype == np.uint8
+
+
+def test_long_ids_are_cut_in_errors():
+    """A 16 KB frame id was echoed whole: the status then exceeded gRPC's limit and the client
+    got 'Stream removed' instead of INVALID_ARGUMENT."""
+    with pytest.raises(InvalidInput) as caught:
+        decode_frame_id("x" * 16384)
+    message = str(caught.value)
+    assert message.startswith("frame_id: invalid frame id 'xxx")
+    assert "(16384 characters)" in message and len(message) < 300
+    with pytest.raises(InvalidInput, match="namespace: invalid namespace"):
+        decode_namespace("a/b")
+    assert decode_namespace("") == decode_namespace(None) == "default"
 
 
 @pytest.mark.parametrize(

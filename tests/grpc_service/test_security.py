@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import re
 import shutil
 import subprocess
+import sys
 import urllib.request
 
 import grpc
@@ -13,11 +17,11 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from serving.client import LabelingClient
 from serving.metrics import ServiceMetrics
-from serving.server import ServerConfig, create_server
+from serving.server import BackgroundServer, ServerConfig
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore, list_frames
-from tests.conftest import KITTI_SAMPLE
-from tests.grpc_service.conftest import running_server
+from tests.conftest import KITTI_SAMPLE, REPO
+from tests.grpc_service.conftest import TORCH_FREE_SERVE, running_server, serve_process
 
 
 @pytest.fixture
@@ -80,35 +84,141 @@ def test_tls(tmp_path, slot, certificate):
             assert caught.value.code() == grpc.StatusCode.UNAVAILABLE
 
 
-def test_tls_needs_both_files(tmp_path, slot, certificate):
-    store = LabelStore(tmp_path / "store", "s0")
+def test_tls_needs_both_files(certificate):
     with pytest.raises(ValueError, match="both a certificate and a key"):
-        create_server(LabelingService(slot, store), ServerConfig(tls_cert=certificate[0]))
-    store.close()
+        ServerConfig(tls_cert=certificate[0])
 
 
-def test_metrics_endpoint(tmp_path, slot):
-    store = LabelStore(tmp_path / "store", "s0")
+def _metric(text: str, name: str, **labels: str) -> float:
+    """The value of one sample of a Prometheus text exposition (0 when absent)."""
+    wanted = {k: v for k, v in labels.items()}
+    for line in text.splitlines():
+        if not line.startswith(name + "{") and not line.startswith(name + " "):
+            continue
+        head, value = line.rsplit(" ", 1)
+        found = dict(re.findall(r'(\w+)="([^"]*)"', head))
+        if head.split("{")[0] == name and all(found.get(k) == v for k, v in wanted.items()):
+            return float(value)
+    return 0.0
+
+
+def test_metrics_count_every_request_at_the_edge(tmp_path, slot):
+    """OK, INVALID_ARGUMENT, UNAUTHENTICATED, bytes that are no request and an over-size
+    message are all counted, with the served model version; per-stage histograms, in-flight
+    and process metrics are exported; the endpoint binds the address it is given."""
     metrics = ServiceMetrics()
-    server, port, _ = create_server(LabelingService(slot, store), ServerConfig(), metrics)
-    slot.swap(slot.labeler)  # announce the served version to the new server's listeners
-    server.start()
+    store = LabelStore(tmp_path / "store", "s0")
+    config = ServerConfig(token="t0k", max_message_bytes=4 * 1024 * 1024)
+    background = BackgroundServer(LabelingService(slot, store), config, metrics)
+    port = background.start()
     try:
-        metrics_port = metrics.serve(0)
-        with LabelingClient(f"127.0.0.1:{port}") as client:
+        metrics_port = metrics.serve(0, "0.0.0.0")
+        with LabelingClient(f"127.0.0.1:{port}", token="t0k") as client:
             response = client.label_kitti_frame(KITTI_SAMPLE, "000000")
             with pytest.raises(grpc.RpcError):
                 client.label_frame("../x", b"", b"", store=False, calib=_calib())
-        url = f"http://127.0.0.1:{metrics_port}/metrics"
-        text = urllib.request.urlopen(url, timeout=10).read().decode()
+            with pytest.raises(grpc.RpcError) as over:
+                client.label_frame("big", b"\0" * (5 * 1024 * 1024), b"", calib=_calib())
+            assert over.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+            garbage = client.channel.unary_unary("/detmatch.v1.AutoLabeler/LabelFrame")
+            with pytest.raises(grpc.RpcError) as malformed:
+                garbage(b"\xff\xff\xff\xff", timeout=10, metadata=client.metadata)
+            assert malformed.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        with LabelingClient(f"127.0.0.1:{port}", token="wrong") as stranger:
+            with pytest.raises(grpc.RpcError):
+                stranger.model_info()
+        text = (
+            urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10)
+            .read()
+            .decode()
+        )
     finally:
-        server.stop(None).wait()
+        background.stop()
         store.close()
-    assert 'detmatch_requests_total{code="OK",method="LabelFrame"} 1.0' in text
-    assert 'detmatch_errors_total{code="INVALID_ARGUMENT",method="LabelFrame"} 1.0' in text
-    assert 'detmatch_request_seconds_count{method="LabelFrame"} 2.0' in text
-    assert f"detmatch_labels_total {float(len(response.labels))}" in text
-    assert f'detmatch_model_info{{version="{slot.version}"}} 1.0' in text
+    version = slot.version
+    for code, count in (("OK", 1), ("INVALID_ARGUMENT", 2), ("RESOURCE_EXHAUSTED", 1)):
+        labels = {"method": "LabelFrame", "code": code, "model_version": version}
+        assert _metric(text, "detmatch_requests_total", **labels) == count, (code, text)
+    assert _metric(text, "detmatch_errors_total", method="LabelFrame",
+                   code="RESOURCE_EXHAUSTED") == 1  # fmt: skip
+    assert _metric(text, "detmatch_requests_total", method="GetModelInfo",
+                   code="UNAUTHENTICATED", model_version=version) == 1  # fmt: skip
+    assert _metric(text, "detmatch_errors_total", method="GetModelInfo",
+                   code="UNAUTHENTICATED") == 1  # fmt: skip
+    assert _metric(text, "detmatch_request_seconds_count", method="LabelFrame") == 4
+    assert _metric(text, "detmatch_requests_in_flight", method="LabelFrame") == 0
+    for stage in ("decode", "detector2d", "pillarize", "detector3d", "matching", "store"):
+        assert _metric(text, "detmatch_stage_seconds_count", stage=stage,
+                       model_version=version) == 1, stage  # fmt: skip
+    assert _metric(text, "detmatch_labels_total", model_version=version) == len(response.labels)
+    assert _metric(text, "detmatch_store_outcomes_total", outcome="created") == 1
+    assert _metric(text, "detmatch_model_info", version=version) == 1
+    assert _metric(text, "process_resident_memory_bytes") > 0
+    assert _metric(text, "process_open_fds") > 0
+
+
+def test_metrics_host_is_configurable(tmp_path, exported_repository):
+    """`--metrics-host 0.0.0.0` binds every interface (it was hard-wired to 127.0.0.1)."""
+    args = ("--metrics-port", "0", "--metrics-host", "0.0.0.0")
+    with serve_process(exported_repository, tmp_path / "store", *args) as (process, _):
+        line = ""
+        while '"metrics endpoint"' not in line:
+            line = process.stderr.readline()
+            assert line, "no metrics endpoint line in the log"
+        address = json.loads(line)["address"]
+        assert address.startswith("0.0.0.0:")
+        port = int(address.rsplit(":", 1)[1])
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read()
+        assert b"detmatch_requests_total" in text or b"detmatch_requests" in text
+
+
+def _serve_command(repository, store, *args: str) -> list[str]:
+    return [sys.executable, "-c", TORCH_FREE_SERVE, "--repository", str(repository),
+            "--store", str(store), "--port", "0", *args]  # fmt: skip
+
+
+@pytest.mark.parametrize("token", [None, "", "  "])
+def test_serve_refuses_to_start_without_a_token_unless_auth_is_disabled(
+    tmp_path, exported_repository, token
+):
+    env = {k: v for k, v in os.environ.items() if k != "DETMATCH_TOKEN"}
+    env.update(OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    if token is not None:
+        env["DETMATCH_TOKEN"] = token
+    done = subprocess.run(_serve_command(exported_repository, tmp_path / "store"), env=env,
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "DETMATCH_TOKEN" in done.stderr and "--no-auth" in done.stderr
+    assert "listening" not in done.stdout
+    env["DETMATCH_TOKEN"] = "s3cret"
+    done = subprocess.run(
+        _serve_command(exported_repository, tmp_path / "store", "--no-auth"),
+        env=env, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2 and "--no-auth, but $DETMATCH_TOKEN holds a token" in done.stderr
+
+
+def test_serve_logs_whether_auth_and_tls_are_on(tmp_path, exported_repository, certificate):
+    cert, key = certificate
+    tls = ("--tls-cert", str(cert), "--tls-key", str(key))
+    runs = [((), "s3cret", "bearer token", False), (("--no-auth", *tls), None, "off", True)]
+    for args, token, auth, tls_on in runs:
+        env = {k: v for k, v in os.environ.items() if k != "DETMATCH_TOKEN"}
+        env.update(OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+        if token:
+            env["DETMATCH_TOKEN"] = token
+        command = _serve_command(exported_repository, tmp_path / "store", *args)
+        process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True)  # fmt: skip
+        try:
+            starting = json.loads(process.stderr.readline())
+            assert starting["message"] == "starting"
+            assert (starting["auth"], starting["tls"]) == (auth, tls_on)
+            warning = json.loads(process.stderr.readline())
+            assert ("authentication is off" in warning["message"]) == (auth == "off")
+        finally:
+            process.kill()
+            process.communicate(timeout=30)
 
 
 def _calib():

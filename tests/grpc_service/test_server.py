@@ -57,7 +57,9 @@ def test_round_trip_matches_the_labeler_and_is_stored(server, served_labeler, sy
     records = list_frames(server.store_root)
     assert [r.frame_id for r in records] == [frame_id]
     assert records[0].num_labels == len(expected)
-    stored = KittiDataset(server.store_root / "shards" / "s0").load_frame(frame_id)
+    stored = KittiDataset(
+        server.store_root / "shards" / "s0" / "namespaces" / "default"
+    ).load_frame(frame_id)
     np.testing.assert_array_equal(stored.points, frame.points)
     np.testing.assert_array_equal(stored.image, frame.image)
     assert check_integrity(server.store_root) == []
@@ -211,7 +213,9 @@ def test_jpeg_frames_are_labeled_and_stored_as_png(server):
     with LabelingClient(server.target) as client:
         response = client.label_frame("jpeg_0", buffer.getvalue(), frame.points, frame.calib)
     assert response.stored
-    stored = KittiDataset(server.store_root / "shards" / "s0").load_frame("jpeg_0")
+    stored = KittiDataset(
+        server.store_root / "shards" / "s0" / "namespaces" / "default"
+    ).load_frame("jpeg_0")
     decoded = np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB"))
     np.testing.assert_array_equal(stored.image, decoded)
 
@@ -222,5 +226,5 @@ def test_example_script_prints_the_labels(server):
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.startswith("frame 000002: ")
-    assert "model version 000001" in done.stdout and "(stored)" in done.stdout
+    assert done.stdout.startswith("frame default/000002: ")
+    assert "model version 000001" in done.stdout and "(stored: created)" in done.stdout

@@ -10,7 +10,7 @@ import grpc
 from grpc_health.v1 import health_pb2
 
 from serving.client import LabelingClient
-from serving.server import ServerConfig, create_server, shutdown
+from serving.server import BackgroundServer, ServerConfig
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore, check_integrity, list_frames
 from tests.conftest import KITTI_SAMPLE
@@ -37,16 +37,20 @@ def test_shutdown_drains_calls_in_flight(tmp_path, served_labeler):
     slot = ModelSlot()
     slot.swap(blocking)
     store = LabelStore(tmp_path / "store", "s0")
-    server, port, health = create_server(LabelingService(slot, store), ServerConfig())
-    server.start()
+    background = BackgroundServer(LabelingService(slot, store), ServerConfig())
+    port = background.start()
+    health = background.server.health
     with LabelingClient(f"127.0.0.1:{port}") as client:
         future = client.stub.LabelFrame.future(_request(client), timeout=60)
         assert blocking.entered.wait(30)
-        stopper = threading.Thread(target=shutdown, args=(server, health, 30.0))
+        stopper = threading.Thread(target=background.stop, args=(30.0,))
         stopper.start()
         request = health_pb2.HealthCheckRequest()
         deadline = time.monotonic() + 10
-        while health.Check(request, None).status != health_pb2.HealthCheckResponse.NOT_SERVING:
+        while (
+            background.call(health.Check(request, None)).status
+            != health_pb2.HealthCheckResponse.NOT_SERVING
+        ):
             assert time.monotonic() < deadline
             time.sleep(0.01)
         assert stopper.is_alive()  # waiting for the call in flight

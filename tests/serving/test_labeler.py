@@ -199,3 +199,39 @@ def test_session_settings_are_validated():
         SessionSettings(graph_optimization="max")
     with pytest.raises(ValueError, match="intra_op_threads"):
         SessionSettings(intra_op_threads=-1)
+
+
+def test_threads_follow_the_cgroup_cpu_quota(tmp_path):
+    """A container's CPU limit (cgroup v2 cpu.max, v1 cfs quota) caps onnxruntime's threads;
+    the CPU set alone does not show it."""
+    from serving.sessions import cgroup_cpu_limit
+
+    v2 = tmp_path / "v2"
+    (v2 / "kubepods" / "pod1").mkdir(parents=True)
+    (v2 / "kubepods" / "cpu.max").write_text("max 100000\n")
+    (v2 / "kubepods" / "pod1" / "cpu.max").write_text("150000 100000\n")
+    proc = tmp_path / "cgroup_v2"
+    proc.write_text("0::/kubepods/pod1\n")
+    assert cgroup_cpu_limit(proc, v2) == 1.5
+    (v2 / "kubepods" / "cpu.max").write_text("50000 100000\n")  # a stricter parent
+    assert cgroup_cpu_limit(proc, v2) == 0.5
+    v1 = tmp_path / "v1"
+    (v1 / "cpu,cpuacct" / "docker" / "abc").mkdir(parents=True)
+    (v1 / "cpu,cpuacct" / "docker" / "abc" / "cpu.cfs_quota_us").write_text("200000\n")
+    (v1 / "cpu,cpuacct" / "docker" / "abc" / "cpu.cfs_period_us").write_text("100000\n")
+    proc_v1 = tmp_path / "cgroup_v1"
+    proc_v1.write_text("5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n")
+    assert cgroup_cpu_limit(proc_v1, v1) == 2.0
+    unlimited = tmp_path / "unlimited"
+    unlimited.mkdir()
+    (unlimited / "cpu.max").write_text("max 100000\n")
+    (tmp_path / "cgroup_root").write_text("0::/\n")
+    assert cgroup_cpu_limit(tmp_path / "cgroup_root", unlimited) is None
+    assert cgroup_cpu_limit(tmp_path / "missing", unlimited) is None
+
+
+def test_sessions_run_without_the_memory_arena(exported_repository):
+    """onnxruntime's arena kept whatever one large input needed (+1.2 GB for good)."""
+    labeler = Labeler.from_repository(exported_repository)
+    for session in (labeler.session_2d, labeler.session_3d):
+        assert session.get_session_options().enable_cpu_mem_arena is False
