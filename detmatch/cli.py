@@ -195,14 +195,33 @@ def _predict(args: argparse.Namespace) -> int:
 def _label(args: argparse.Namespace) -> int:
     from serving.labeler import Labeler
     from serving.offline import label_split
+    from serving.store import LabelStore
 
+    if not args.out and not args.store:
+        raise ValueError("give --out DIR (result files), --store DIR (the label store) or both")
     frames = _frames(args)
     labeler = Labeler.from_repository(Path(args.repository), args.version)
-    summary = label_split(labeler, Path(args.data), frames, Path(args.out), args.tau_hung)
+    store = LabelStore(Path(args.store), args.shard) if args.store else None
+    try:
+        summary = label_split(
+            labeler, Path(args.data), frames, Path(args.out) if args.out else None,
+            args.tau_hung, store=store,
+        )  # fmt: skip
+    finally:
+        if store is not None:
+            store.close()
+    where = []
+    if args.out:
+        where.append(f"{args.out}/3d, {args.out}/2d, {args.out}/labels")
+    if store is not None:
+        where.append(
+            f"label store {args.store} shard {store.shard} ({summary.stored} frames stored, "
+            f"{summary.already_stored} already there)"
+        )
     print(
         f"labeled {summary.frames} frames with model version {summary.model_version}: "
         f"{summary.labels} labels ({summary.matched} matched 2D-3D, {summary.lidar_only} "
-        f"LiDAR-only outside the camera's view) -> {args.out}/3d, {args.out}/2d, {args.out}/labels"
+        f"LiDAR-only outside the camera's view) -> {'; '.join(where)}"
     )
     return 0
 
@@ -360,7 +379,13 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--version", help="model version (default: the newest promoted one)")
     label.add_argument("--data", required=True, help="KITTI-layout data set root")
     _add_frame_selection(label)
-    label.add_argument("--out", required=True, help="output directory (gets 3d/, 2d/, labels/)")
+    label.add_argument("--out", help="output directory (gets 3d/, 2d/, labels/)")
+    label.add_argument(
+        "--store",
+        help="label store directory: store every frame and its labels as the service does "
+        "(what `detmatch retrain` reads); with or without --out",
+    )
+    label.add_argument("--shard", default="offline", help="the label store shard written")
     label.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
     label.set_defaults(handler=_label)
 
