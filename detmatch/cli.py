@@ -264,6 +264,53 @@ def _health(args: argparse.Namespace) -> int:
     return 0 if status == "SERVING" else 1
 
 
+def _retrain(args: argparse.Namespace) -> int:
+    from detmatch.training.distributed import init_distributed, shutdown_distributed
+    from export.graphs import ExportCheckError
+    from retrain.round import RoundOutcome, RoundRequest
+    from retrain.schedule import LockHeld, parse_period, run_scheduled
+
+    every = parse_period(args.every) if args.every else None
+    if args.times is not None and (every is None or args.times < 1):
+        raise ValueError("--times N (N >= 1) goes with --every")
+    for name in ("store", "data", "repository"):
+        if not Path(getattr(args, name)).is_dir():
+            raise FileNotFoundError(f"--{name} {getattr(args, name)}: no such directory")
+    repository = Path(args.repository)
+    request = RoundRequest(
+        store=Path(args.store),
+        data=Path(args.data),
+        repository=repository,
+        work=Path(args.work) if args.work else repository / ".retrain",
+        config=args.config,
+        overrides=tuple(args.set),
+        force=args.force,
+    )
+    context = init_distributed(args.device)
+
+    def report(outcome: RoundOutcome) -> None:
+        if context.is_main:
+            print(outcome.message, flush=True)
+            if outcome.report is not None:
+                print(f"report: {outcome.report}", flush=True)
+
+    try:
+        run_scheduled(request, context, every, args.times, report=report)
+    except LockHeld as error:
+        print(f"detmatch retrain: {error}", file=sys.stderr)
+        return 3
+    except ExportCheckError as error:
+        print(f"detmatch retrain: the candidate failed its export checks, nothing was "
+              f"published: {error}", file=sys.stderr)  # fmt: skip
+        return 1
+    except KeyboardInterrupt:
+        print("detmatch retrain: interrupted; the next run resumes the round", file=sys.stderr)
+        return 130
+    finally:
+        shutdown_distributed()
+    return 0
+
+
 def _store_export(args: argparse.Namespace) -> int:
     from serving.store import export_store
 
@@ -425,6 +472,59 @@ def build_parser() -> argparse.ArgumentParser:
     health.add_argument("--ca-cert", help="PEM certificate to verify a TLS server")
     health.add_argument("--server-name", help="the name the TLS certificate holds")
     health.set_defaults(handler=_health)
+
+    retrain = commands.add_parser(
+        "retrain",
+        help="a retraining round: the label store's frames -> a new version, promoted only if "
+        "it does not regress",
+        description="Continue teacher-student training from the served version with the "
+        "original labeled frames and every stored frame (all shards) in the unlabeled pool; "
+        "score the candidate and the served version on the held-out gate split ([data] "
+        "val_split of --data); export the candidate and promote it only if neither its 2D nor "
+        "its 3D moderate mAP drops more than [retrain] max_map_drop. Skips when the store "
+        "holds nothing new since the last round. Exit status: 0 done (promoted, not promoted "
+        "or skipped), 1 the export checks failed, 2 bad input, 3 another retraining holds the "
+        "repository's lock.",
+    )
+    retrain.add_argument("--store", required=True, help="label store directory (every shard)")
+    retrain.add_argument(
+        "--data", required=True, help="the original data set: labeled frames, pool and gate split"
+    )
+    retrain.add_argument("--repository", required=True, help="model repository")
+    retrain.add_argument(
+        "--config",
+        help="TOML config file or packaged config name (default: the served version's config, "
+        "kept in its manifest); it must describe the same detectors",
+    )
+    retrain.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a config key, e.g. retrain.steps=500, retrain.max_map_drop=0.5, "
+        "retrain.stored_labels=labeled, data.val_split=gate (repeatable)",
+    )
+    retrain.add_argument(
+        "--work",
+        help="working directory: the round in progress and past rounds' reports (default: "
+        "REPOSITORY/.retrain)",
+    )
+    retrain.add_argument(
+        "--every",
+        metavar="PERIOD",
+        help="run in the foreground, a round every PERIOD (90s, 15m, 24h, 7d)",
+    )
+    retrain.add_argument("--times", type=int, help="with --every: stop after N periods")
+    retrain.add_argument(
+        "--force", action="store_true", help="train even if the store holds nothing new"
+    )
+    retrain.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
+    )
+    retrain.set_defaults(handler=_retrain)
 
     store = commands.add_parser("store", help="the label store of `detmatch serve`")
     store_commands = store.add_subparsers(dest="store_command", required=True, metavar="ACTION")
