@@ -7,6 +7,7 @@ import json
 import os
 import socket
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -311,6 +312,16 @@ def _retrain(args: argparse.Namespace) -> int:
     return 0
 
 
+def _demo(args: argparse.Namespace) -> int:
+    from retrain.demo import run_demo
+
+    started = time.monotonic()
+    report = run_demo(args.out, args.size, args.seed, args.workers, args.device)
+    print(f"demo finished in {time.monotonic() - started:.0f} s")
+    print(f"report: {report}")
+    return 0
+
+
 def _store_export(args: argparse.Namespace) -> int:
     from serving.store import export_store
 
@@ -525,6 +536,31 @@ def build_parser() -> argparse.ArgumentParser:
         help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
     )
     retrain.set_defaults(handler=_retrain)
+
+    from retrain.demo import DEFAULT_OUT, DEFAULT_SIZE, SIZES, describe_sizes
+
+    demo = commands.add_parser(
+        "demo",
+        help="the whole product in one command: synthetic data, pre-training, DetMatch, "
+        "export, the service, labeling through gRPC, a retraining round, a report",
+        description="Generate a synthetic data set, pre-train both detectors, run DetMatch, "
+        "compare them on val, export, start `detmatch serve`, label unseen frames through gRPC "
+        "into the label store, run one retraining round from the stored labels (promoted if "
+        "it passes) and write a report directory; its path is printed at the end. Sizes: "
+        + describe_sizes(),
+    )
+    demo.add_argument("--size", choices=tuple(SIZES), default=DEFAULT_SIZE,
+                      help="how big a run (see above)")  # fmt: skip
+    demo.add_argument("--out", default=DEFAULT_OUT, help="output directory (new or empty)")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the synthetic data")
+    demo.add_argument("--workers", type=int, default=2, help="processes rendering frames")
+    demo.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
+    )
+    demo.set_defaults(handler=_demo)
 
     store = commands.add_parser("store", help="the label store of `detmatch serve`")
     store_commands = store.add_subparsers(dest="store_command", required=True, metavar="ACTION")
