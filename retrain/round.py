@@ -147,6 +147,7 @@ class RoundState:
             parent=self.parent,
             passed=bool(self.passed),
             data=self.data,
+            config=self.request_config,
         )
 
     def summary(self) -> dict[str, Any]:
@@ -223,8 +224,11 @@ def resolve_config(
     parent: Manifest, config: str | None, overrides: tuple[str, ...]
 ) -> ExperimentConfig:
     """The config a round trains with: the parent version's (or `config`), `--set` overrides,
-    and DetMatch when its method is labeled-only. It must describe the parent's detectors."""
-    parent_config = config_from_dict(parent.training.config)
+    and DetMatch when its method is labeled-only. It must describe the parent's detectors. A
+    parent a round made gives the config that round was asked for (its own run's config names
+    the round's internal splits)."""
+    record = parent.retraining
+    parent_config = config_from_dict(record.config if record else parent.training.config)
     resolved = apply_overrides(load_config(config) if config else parent_config, overrides)
     if resolved.ssl.method == "labeled-only":
         resolved = resolved.replace("ssl", method="detmatch")

@@ -269,7 +269,9 @@ class RoundData:
 class RetrainingRecord:
     """The retraining round that made a version: it trained `steps` steps from parent_version,
     scored both models on the same gate split, and `passed` says whether the candidate met
-    `gate_passes` with max_map_drop (the PROMOTED marker says whether it was promoted)."""
+    `gate_passes` with max_map_drop (the PROMOTED marker says whether it was promoted).
+    config: the config the round was asked for, naming the original data set's splits (the
+    next round starts from it; training.config is what the round's own run used)."""
 
     round_id: str
     parent_version: str
@@ -281,6 +283,7 @@ class RetrainingRecord:
     parent: GateFigures
     passed: bool
     data: RoundData
+    config: dict[str, Any]
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", self.round_id):

@@ -7,8 +7,11 @@ run again."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -38,7 +41,7 @@ from serving.repository import (
     training_checkpoint,
     verify_checksums,
 )
-from tests.conftest import KITTI_SAMPLE
+from tests.conftest import KITTI_SAMPLE, REPO
 from tests.grpc_service.conftest import serve_process
 from tests.retrain.conftest import retrain_args, retrain_process
 
@@ -105,6 +108,15 @@ def test_served_labels_feed_a_round_that_is_promoted_and_served(
     assert main(args) == 0
     assert "skipped: no new frames since round " + record.round_id in capsys.readouterr().out
     assert list_versions(repository) == ["000001", "000002"]
+
+    # Batch labeling adds frames; the next round continues 000002 with the original splits.
+    assert main(["label", "--repository", str(repository), "--data", str(KITTI_SAMPLE), "--all",
+                 "--store", str(store), "--shard", "batch"]) == 0  # fmt: skip
+    assert main(retrain_args(store, round_data, repository, "--set", "retrain.steps=1")) == 0
+    assert "version 000003 " in capsys.readouterr().out
+    second = load_manifest(repository / "000003").retraining
+    assert second.parent_version == "000002" and second.data.splits == data.splits
+    assert second.config["retrain"]["steps"] == 1 and second.config["data"]["val_split"] == "val"
 
 
 def _self_labeled_gate(checkpoint: Path, root: Path, frames: list[str]) -> list[str]:
@@ -218,3 +230,26 @@ def test_a_killed_round_publishes_nothing_half_done_and_finishes_when_run_again(
     steps = [json.loads(line)["step"] for line in metrics.read_text().splitlines()]
     assert steps[0] == 1 and steps[-1] == 20
     assert load_manifest(repository / "000002").training.step == 20
+
+
+def test_a_round_under_torchrun_trains_on_every_rank_and_publishes_once(
+    tmp_path, repository, round_data
+):
+    store = tmp_path / "store"
+    assert main(["label", "--repository", str(repository), "--data", str(KITTI_SAMPLE), "--all",
+                 "--store", str(store)]) == 0  # fmt: skip
+    args = retrain_args(store, round_data, repository, "--set", "retrain.steps=2",
+                        "--set", "retrain.max_map_drop=100")  # fmt: skip
+    torchrun = Path(sys.executable).parent / "torchrun"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    result = subprocess.run(
+        [str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "detmatch.cli", *args],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    # Rank 0 alone evaluated, exported, promoted and reported.
+    assert result.stdout.count("version 000002 promoted") == 1
+    assert result.stderr.count("exporting the candidate") == 1
+    assert list_versions(repository) == ["000001", "000002"]
+    assert served_version(repository) == "000002"
+    assert len(list((repository / ".retrain" / ROUNDS).iterdir())) == 1

@@ -163,7 +163,7 @@ def _round_record(candidate: GateFigures, parent: GateFigures, passed: bool) -> 
     data = RoundData(2, 3, 4, 5, 1, "a" * 64, "pool", "/data", {"gate": "val"})
     right = gate_passes(candidate, parent, 1.0)
     record = RetrainingRecord("r1", "000001", "2026-01-01T00:00:00Z", "detmatch", 10, 1.0,
-                              candidate, parent, right, data)  # fmt: skip
+                              candidate, parent, right, data, {})  # fmt: skip
     return {**to_plain(record), "passed": passed}
 
 
