@@ -64,14 +64,14 @@ SIZES = {
     for size in (
         DemoSize("smoke", 10, 3, 4, 3, 2, labeled_fraction=0.4, val_fraction=0.3,
                  config="tiny", about="under a minute: every stage runs, the figures mean nothing"),
-        DemoSize("ci", 48, 8, 120, 40, 20, labeled_fraction=0.3,
-                 about="about 3 minutes on 2 CPU cores (CI's main job)"),
+        DemoSize("ci", 48, 8, 200, 60, 30, labeled_fraction=0.3,
+                 about="about 3 minutes on 2 CPU cores, CI's main job"),
         DemoSize("small", 160, 24, 500, 150, 80, labeled_fraction=0.25,
-                 about="about 10 minutes on 2 CPU cores (the default)"),
+                 about="about 10 minutes on 2 CPU cores, the default"),
         DemoSize("medium", 600, 60, 1500, 600, 300, labeled_fraction=0.1,
                  about="about an hour on 8 CPU cores, minutes on a GPU"),
         DemoSize("large", 2000, 200, 800, 600, 300, config="ssl_cpu", labeled_fraction=0.05,
-                 about="the benchmark's set-up (BENCHMARKS.md): a GPU"),
+                 about="the benchmark's set-up, BENCHMARKS.md: a GPU"),
     )
 }  # fmt: skip
 DEFAULT_SIZE = "small"
