@@ -38,7 +38,7 @@ from detmatch.config import ExperimentConfig, load_config
 if TYPE_CHECKING:  # the command line imports this module for --help: no torch at import
     from detmatch.training.distributed import DistributedContext
 
-DEFAULT_OUT = "detmatch-demo"
+DEFAULT_OUT = "detmatch_demo"
 
 
 @dataclass(frozen=True)
