@@ -289,6 +289,11 @@ def _plan(request: RoundRequest, log: Callable[[str], None]) -> RoundState | Rou
     config = resolve_config(parent, request.config, request.overrides)
     current = request.work / CURRENT
     state = RoundState.load(current) if current.is_dir() else None
+    if state is not None and state.stage == EVALUATED:
+        published = published_version(repository, state.round_id)
+        if published is not None:  # killed between the export's rename and the journal
+            state.version, state.stage = published, PUBLISHED
+            state.save(current)
     if state is not None:
         if STAGES.index(state.stage) >= STAGES.index(PUBLISHED):
             log(f"round {state.round_id}: finishing it (it published version {state.version})")
@@ -313,8 +318,7 @@ def _plan(request: RoundRequest, log: Callable[[str], None]) -> RoundState | Rou
             return RoundOutcome(
                 "skipped",
                 f"skipped: no new frames since round {previous.round_id} (the label store's "
-                f"{snapshot.frames} frames are those it trained on; snapshot "
-                f"{snapshot.id[:12]})",
+                f"{snapshot.frames} frames are those it read; snapshot {snapshot.id[:12]})",
             )
     parent_checkpoint = training_checkpoint(parent_dir, parent)
     started = time.monotonic()
