@@ -239,7 +239,7 @@ def _markdown(
             f"{summary['parent_version']}'s checkpoint with the original frames and the "
             f"{served['frames']} stored frames in the unlabeled pool, then scored both models "
             f"on the same held-out gate (val); it promotes only if neither 2D nor 3D mAP drops "
-            f"more than {summary['max_map_drop']:g} points. Its own report: `{round_report}`.",
+            f"more than {summary['max_map_drop']:.1f} AP. Its own report: `{round_report}`.",
             "",
             ap_table(
                 parent,

@@ -108,7 +108,7 @@ def write_round_report(directory: Path, summary: dict[str, Any]) -> Path:
         "",
         f"The gate: `{data.splits['gate']}` of `{data.data_root}` ({data.gate} held-out labeled "
         f"frames), moderate R40 AP in percent. A candidate is promoted only if neither its 2D "
-        f"nor its 3D mAP is more than {drop:g} points below the parent's "
+        f"nor its 3D mAP is more than {drop:.1f} AP below the parent's "
         f"(`[retrain] max_map_drop`). Gate {'passed' if summary['passed'] else 'failed'}.",
         "",
         ap_table(parent, candidate, parent_name, name),
