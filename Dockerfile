@@ -34,6 +34,7 @@ COPY protos ./protos
 COPY detmatch ./detmatch
 COPY export ./export
 COPY serving ./serving
+COPY retrain ./retrain
 RUN pip wheel --no-deps --wheel-dir /wheels .
 
 # The labeling service: no torch, no build tools.

@@ -23,7 +23,10 @@ class BuildPyWithStubs(build_py):
 
 
 setup(
-    packages=[*find_packages(include=["detmatch*", "export*", "serving*"]), "detmatch.configs"],
+    packages=[
+        *find_packages(include=["detmatch*", "export*", "serving*", "retrain*"]),
+        "detmatch.configs",
+    ],
     package_dir={"detmatch.configs": "configs"},
     cmdclass={"build_py": BuildPyWithStubs},
 )

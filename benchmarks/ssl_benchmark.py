@@ -1,22 +1,30 @@
-"""The semi-supervised benchmark (DESIGN.md section 5): labeled-only vs confidence thresholding
-vs DetMatch from the same pre-trained weights on the same labeled split.
+"""The semi-supervised benchmark (DESIGN.md section 5) for one split seed, from one command:
+labeled-only vs its EMA control vs confidence thresholding vs DetMatch, from the same
+pre-trained weights on the same labeled split, under the dev protocol.
 
     detmatch synth --out data/synth2k --frames 2000 --seed 0 --workers 2
-    detmatch split --data data/synth2k --fraction 0.05 --seed 0
     python benchmarks/ssl_benchmark.py --config configs/ssl_cpu.toml --data data/synth2k \
-        --out runs/ssl_s0 --ssl-steps 800
+        --seed 0 --out runs/ssl_s0
+
+Protocol: `detmatch split --fraction F --seed S --dev-fraction D` (made here when missing)
+holds out a labeled dev split of train, the same for every seed, disjoint from the labeled
+subset, the unlabeled pool and val. Every choice (schedules, learning rates, thresholds,
+weights) is made on dev; val is scored once, at the end, for the report.
 
 Stages (each skipped when its run directory already holds a finished checkpoint):
-1. labeled-only pre-training on [data] train_split ([train] steps);
-2. confidence thresholding and DetMatch, each --ssl-steps from the pre-trained weights;
-3. moderate R40 AP per class on the val split, 2D (bbox) and 3D, with the gain over
-   labeled-only (the paper's Tables 1 and 2);
-4. pseudo-label precision / recall on unlabeled frames against their hidden labels: the
-   pre-trained teacher's detections filtered by each method's rule (the same detections, two
-   filters), restricted to the camera's view where the labels exist;
-5. a PNG like the paper's Figure 3: each 3D teacher box's true IoU against its max class score
-   and against its best 2D-3D matching cost.
-Writes OUT/ssl_benchmark.json and OUT/figure3.png and prints the tables.
+1. labeled-only pre-training on the labeled split ([train] steps and schedules), evaluated on
+   dev every [train] eval_every steps: the learning curve;
+2. each method of --methods for --ssl-steps from the pre-trained weights, at a constant
+   learning rate (the pre-training rates x --ssl-lr-factor) after a short warm-up:
+   labeled-only-control (the same schedule and EMA teacher, labeled frames only),
+   confidence thresholding, DetMatch and its ablations;
+3. moderate R40 AP per class on dev (every run) and on val (once), 2D (bbox) and 3D, with the
+   gain over the better of labeled-only and its control (the paper's Tables 1 and 2);
+4. pseudo-label precision / recall / F1 on unlabeled frames against their hidden labels: the
+   pre-trained teacher's detections filtered by each rule, 3D in the camera's view;
+5. a PNG like the paper's Figure 3 (each 3D teacher box's true IoU against its max class score
+   and its best 2D-3D matching cost, with Spearman correlations).
+Writes OUT/ssl_benchmark.json, OUT/report.md and OUT/figure3.png and prints the tables.
 """
 
 from __future__ import annotations
@@ -31,8 +39,9 @@ import numpy as np
 import torch
 
 from detmatch.checkpoints import list_checkpoints
-from detmatch.config import DEVICES, ExperimentConfig, load_config
+from detmatch.config import DEVICES, ExperimentConfig, apply_overrides, load_config
 from detmatch.data.dataset import FrameDataset, collate
+from detmatch.data.splits import dev_name, make_split, split_names
 from detmatch.eval.pseudo_labels import pseudo_label_quality
 from detmatch.geometry import boxes_touching_image, pairwise_iou_3d, project_boxes_to_image
 from detmatch.inference import predict_batch
@@ -42,12 +51,13 @@ from detmatch.pseudo_labels import confident_detections, match_detections
 from detmatch.structures import Boxes2D, Boxes3D, Detections, Labels
 from detmatch.training.distributed import DistributedContext, init_distributed
 from detmatch.training.evaluation import evaluate_detectors
-from detmatch.training.semi_supervised import SemiSupervisedTrainer
+from detmatch.training.semi_supervised import trainer_type
 from detmatch.training.trainer import SupervisedTrainer
 
 # What each method name of --methods trains: [ssl] overrides (the DetMatch ablations of the
-# paper's Table 5: matching only, + class consistency, + box consistency, full).
+# paper's Table 6: matching only, + class consistency, + box consistency, full).
 METHODS = {
+    "control": {"method": "labeled-only-control"},
     "confidence": {"method": "confidence"},
     "detmatch": {"method": "detmatch"},
     "detmatch-matching-only": {
@@ -56,6 +66,7 @@ METHODS = {
     "detmatch-class-consistency": {"method": "detmatch", "consistency_box": False},
     "detmatch-box-consistency": {"method": "detmatch", "consistency_class": False},
 }  # fmt: skip
+BASELINES = ("labeled-only", "control")
 
 IOU_3D = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
 IOU_2D = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
@@ -77,6 +88,38 @@ def train_stage(
     start = time.perf_counter()
     trainer.run()
     return time.perf_counter() - start
+
+
+def splits(args: argparse.Namespace) -> tuple[str, str, str]:
+    """(labeled, unlabeled, dev) ImageSets names of the seed, written when missing."""
+    labeled, unlabeled = split_names(args.fraction, args.seed, dev_fraction=args.dev_fraction)
+    dev = dev_name(args.dev_fraction)
+    if not all((Path(args.data) / "ImageSets" / f"{n}.txt").exists() for n in (labeled, dev)):
+        make_split(Path(args.data), args.fraction, args.seed, dev_fraction=args.dev_fraction)
+    return labeled, unlabeled, dev
+
+
+def ssl_config(base: ExperimentConfig, method: str, args: argparse.Namespace, out: Path):
+    """A teacher-student run's config: the method's [ssl] settings from the pre-trained run,
+    --ssl-steps at the pre-training rates x --ssl-lr-factor, constant after a warm-up."""
+    config = base.replace("ssl", **METHODS[method], pretrained=str(out / "pretrain"))
+    train = base.train
+    return config.replace(
+        "train", steps=args.ssl_steps, eval_every=args.ssl_steps, schedule_2d="constant",
+        schedule_3d="constant", lr_2d=train.lr_2d * args.ssl_lr_factor,
+        lr_3d=train.lr_3d * args.ssl_lr_factor, warmup_steps=min(train.warmup_steps, 50),
+        checkpoint_every=min(train.checkpoint_every, args.ssl_steps),
+    )  # fmt: skip
+
+
+def learning_curve(run_dir: Path) -> list[dict]:
+    """The dev evaluations a run logged: step, 2D and 3D moderate AP per class and mAP."""
+    curve = []
+    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if "eval" in record:
+            curve.append({"step": record["step"], **{m: record["eval"][m] for m in ("2d", "3d")}})
+    return curve
 
 
 def as_labels(
@@ -196,6 +239,36 @@ def draw_figure(points: np.ndarray, out: Path) -> dict[str, float]:
     return {"spearman_iou_score": rho_score, "spearman_iou_negative_cost": rho_cost}
 
 
+def evaluate_runs(
+    runs: dict[str, Path], dataset: FrameDataset, classes: tuple[str, ...], context, workers: int
+) -> dict[str, dict]:
+    """Moderate R40 AP per class (2D, 3D, BEV) of each run's output models on a dataset."""
+    results = {}
+    for name, run in runs.items():
+        loaded = load_detectors(run)
+        loaded.model_2d.to(context.device)
+        loaded.model_3d.to(context.device)
+        metrics = evaluate_detectors(
+            loaded.model_2d, loaded.model_3d, dataset, classes, num_workers=workers
+        )
+        results[name] = {k: metrics[k] for k in ("2d", "3d", "bev")}
+    return results
+
+
+def ap_table(results: dict[str, dict], modality: str, classes: tuple[str, ...]) -> list[str]:
+    """Markdown rows: AP per class, mAP, gain over the better labeled-only baseline."""
+    baselines = [results[b][modality]["mAP"] for b in BASELINES if b in results]
+    reference = max(baselines) if baselines else 0.0
+    rows = ["| method | " + " | ".join(classes) + " | mAP | gain |"]
+    rows.append("|---|" + "---|" * (len(classes) + 2))
+    for name, metrics in results.items():
+        row = metrics[modality]
+        gain = "" if name in BASELINES else f"{row['mAP'] - reference:+.1f}"
+        cells = " | ".join(f"{row[c]:.1f}" for c in classes)
+        rows.append(f"| {name} | {cells} | {row['mAP']:.1f} | {gain} |")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -203,15 +276,20 @@ def main() -> None:
     parser.add_argument("--config", default="configs/ssl_cpu.toml")
     parser.add_argument("--data", required=True)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--ssl-steps", type=int, default=800)
-    parser.add_argument("--analysis-frames", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=0, help="split seed of the labeled subset")
+    parser.add_argument("--fraction", type=float, default=0.05, help="labeled fraction of train")
+    parser.add_argument("--dev-fraction", type=float, default=0.1, help="dev fraction of train")
+    parser.add_argument("--ssl-steps", type=int, default=600)
+    parser.add_argument("--ssl-lr-factor", type=float, default=0.1,
+                        help="teacher-student learning rates: pre-training's x this")  # fmt: skip
+    parser.add_argument("--analysis-frames", type=int, default=200)
     parser.add_argument(
         "--methods",
-        default="confidence,detmatch",
+        default="control,confidence,detmatch",
         help="comma-separated, from: " + ", ".join(METHODS) + " (empty: pre-training only)",
     )
-    parser.add_argument("--split", help="override [data] train_split (the labeled frames)")
-    parser.add_argument("--unlabeled-split", help="override [ssl] unlabeled_split")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="config override for every run (repeatable)")  # fmt: skip
     parser.add_argument("--device", default="auto", choices=DEVICES)
     parser.add_argument("--workers", type=int, help="override [data] num_workers")
     parser.add_argument(
@@ -224,17 +302,18 @@ def main() -> None:
         action="store_true",
         help="train nothing: report the pre-trained run and the methods whose runs finished",
     )
+    parser.add_argument("--skip-val", action="store_true",
+                        help="score dev only (tuning: val is scored once, at the end)")  # fmt: skip
     args = parser.parse_args()
     methods = [m for m in args.methods.split(",") if m]
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         parser.error(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
     out = Path(args.out)
-    base = load_config(args.config).replace("data", root=args.data)
-    if args.split:
-        base = base.replace("data", train_split=args.split)
-    if args.unlabeled_split:
-        base = base.replace("ssl", unlabeled_split=args.unlabeled_split)
+    labeled, unlabeled, dev = splits(args)
+    base = apply_overrides(load_config(args.config), args.set)
+    base = base.replace("data", root=args.data, train_split=labeled, val_split=dev)
+    base = base.replace("ssl", unlabeled_split=unlabeled)
     if args.workers is not None:
         base = base.replace("data", num_workers=args.workers)
     classes = base.data.classes
@@ -247,62 +326,75 @@ def main() -> None:
     else:
         timings["pretrain"] = train_stage(SupervisedTrainer, base, out / "pretrain", context)
         for method in methods:
-            config = base.replace("ssl", **METHODS[method], pretrained=str(out / "pretrain"))
-            config = config.replace("train", steps=args.ssl_steps, eval_every=10**9)
-            timings[method] = train_stage(SemiSupervisedTrainer, config, out / method, context)
+            config = ssl_config(base, method, args, out)
+            trainer = trainer_type(config.ssl.method)
+            timings[method] = train_stage(trainer, config, out / method, context)
     if args.train_only:
         print(json.dumps({"train_wall_s": timings}))
         return
 
+    started = time.perf_counter()
     grid = build_detectors(base)[1].grid
-    val = FrameDataset(args.data, base.data.val_split, classes, base.data.image_size, grid)
-    results = {}
-    for name, run in [("labeled-only", "pretrain"), *[(m, m) for m in methods]]:
-        loaded = load_detectors(out / run)
-        model_2d, model_3d = loaded.model_2d, loaded.model_3d
-        model_2d.to(context.device)
-        model_3d.to(context.device)
-        metrics = evaluate_detectors(
-            model_2d, model_3d, val, classes, num_workers=base.data.num_workers
-        )
-        results[name] = {k: metrics[k] for k in ("2d", "3d", "bev")}
-
-    print(f"split {base.data.train_split}; val frames {len(val)}; SSL steps {args.ssl_steps}")
-    for modality, label in (("3d", "3D AP (moderate, R40)"), ("2d", "2D AP (moderate, R40)")):
-        print(f"\n{label}\n| method | " + " | ".join(classes) + " | mAP | gain |")
-        print("|---|" + "---|" * (len(classes) + 2))
-        reference = results["labeled-only"][modality]["mAP"]
-        for name, metrics in results.items():
-            row = metrics[modality]
-            gain = row["mAP"] - reference
-            print(
-                f"| {name} | "
-                + " | ".join(f"{row[c]:.1f}" for c in classes)
-                + f" | {row['mAP']:.1f} | {gain:+.1f} |"
-            )
-
+    runs = {"labeled-only": out / "pretrain", **{m: out / m for m in methods}}
+    workers = base.data.num_workers
+    scored = {"dev": dev} if args.skip_val else {"dev": dev, "val": "val"}
+    results = {
+        split: evaluate_runs(
+            runs,
+            FrameDataset(args.data, name, classes, base.data.image_size, grid),
+            classes,
+            context,
+            workers,
+        )  # fmt: skip
+        for split, name in scored.items()
+    }
     quality, points = analyse_teacher(out / "pretrain", base, args.analysis_frames)
-    frames = args.analysis_frames
-    print(f"\nPseudo-label quality of the pre-trained teacher on {frames} unlabeled frames")
-    print("| rule | modality | class | precision | recall | labels | objects |")
-    print("|---|---|---|---|---|---|---|")
+    correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
+    timings["report"] = time.perf_counter() - started
+
+    lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
+    lines += [f"Labeled {labeled}, unlabeled {unlabeled}, dev {dev}; config {args.config}"]
+    lines += [f"{' '.join(args.set)}; {args.ssl_steps} teacher-student steps.", ""]
+    for split in results:
+        for modality in ("3d", "2d"):
+            lines += [f"## {split}: {modality.upper()} AP (moderate, R40)", ""]
+            lines += ap_table(results[split], modality, classes) + [""]
+    lines += [
+        "## Pre-training learning curve on dev (mAP)",
+        "",
+        "| step | 2D | 3D |",
+        "|---|---|---|",
+    ]
+    curve = learning_curve(out / "pretrain")
+    lines += [f"| {p['step']} | {p['2d']['mAP']:.1f} | {p['3d']['mAP']:.1f} |" for p in curve]
+    lines += ["", f"## Pseudo-labels of the pre-trained teacher, {args.analysis_frames} frames", ""]
+    lines += ["| rule | modality | class | precision | recall | F1 | labels | objects |"]
+    lines += ["|---|---|---|---|---|---|---|---|"]
     for method, per_class in quality.items():
         for modality in ("3d", "2d"):
             for name in classes:
                 q = per_class[name][modality]
+                f1 = 2 * q["precision"] * q["recall"] / max(q["precision"] + q["recall"], 1e-12)
                 cells = [method, modality, name, f"{q['precision']:.3f}", f"{q['recall']:.3f}"]
-                cells += [str(q["num_pseudo"]), str(q["num_gt"])]
-                print("| " + " | ".join(cells) + " |")
-    correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
-    print(f"\nFigure 3: {out / 'figure3.png'} ({len(points)} 3D teacher boxes) {correlation}")
+                cells += [f"{f1:.3f}", str(q["num_pseudo"]), str(q["num_gt"])]
+                lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", f"Figure 3: figure3.png ({len(points)} 3D teacher boxes), Spearman {correlation}"]
+    lines += ["", f"Wall seconds: {json.dumps({k: round(v) for k, v in timings.items()})}"]
+    lines += ["", "rerun: python " + " ".join(sys.argv)]
+    report = "\n".join(lines) + "\n"
+    (out / "report.md").write_text(report)
+    print(report)
     summary = {
+        "seed": args.seed,
+        "splits": {"labeled": labeled, "unlabeled": unlabeled, "dev": dev},
         "results": results,
+        "learning_curve": curve,
         "pseudo_label_quality": quality,
         "figure3": correlation,
         "train_wall_s": timings,
+        "command": " ".join(sys.argv),
     }
     (out / "ssl_benchmark.json").write_text(json.dumps(summary, indent=2))
-    print("rerun: python " + " ".join(sys.argv))
 
 
 if __name__ == "__main__":

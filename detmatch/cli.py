@@ -7,6 +7,7 @@ import json
 import os
 import socket
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -195,14 +196,33 @@ def _predict(args: argparse.Namespace) -> int:
 def _label(args: argparse.Namespace) -> int:
     from serving.labeler import Labeler
     from serving.offline import label_split
+    from serving.store import LabelStore
 
+    if not args.out and not args.store:
+        raise ValueError("give --out DIR (result files), --store DIR (the label store) or both")
     frames = _frames(args)
     labeler = Labeler.from_repository(Path(args.repository), args.version)
-    summary = label_split(labeler, Path(args.data), frames, Path(args.out), args.tau_hung)
+    store = LabelStore(Path(args.store), args.shard) if args.store else None
+    try:
+        summary = label_split(
+            labeler, Path(args.data), frames, Path(args.out) if args.out else None,
+            args.tau_hung, store=store, namespace=args.namespace,
+        )  # fmt: skip
+    finally:
+        if store is not None:
+            store.close()
+    where = []
+    if args.out:
+        where.append(f"{args.out}/3d, {args.out}/2d, {args.out}/labels")
+    if store is not None:
+        where.append(
+            f"label store {args.store} shard {store.shard} ({summary.stored} frames stored, "
+            f"{summary.already_stored} already there)"
+        )
     print(
         f"labeled {summary.frames} frames with model version {summary.model_version}: "
         f"{summary.labels} labels ({summary.matched} matched 2D-3D, {summary.lidar_only} "
-        f"LiDAR-only outside the camera's view) -> {args.out}/3d, {args.out}/2d, {args.out}/labels"
+        f"LiDAR-only outside the camera's view) -> {'; '.join(where)}"
     )
     return 0
 
@@ -266,6 +286,63 @@ def _health(args: argparse.Namespace) -> int:
     )
     print(status)
     return 0 if status == "SERVING" else 1
+
+
+def _retrain(args: argparse.Namespace) -> int:
+    from detmatch.training.distributed import init_distributed, shutdown_distributed
+    from export.graphs import ExportCheckError
+    from retrain.round import RoundOutcome, RoundRequest
+    from retrain.schedule import LockHeld, parse_period, run_scheduled
+
+    every = parse_period(args.every) if args.every else None
+    if args.times is not None and (every is None or args.times < 1):
+        raise ValueError("--times N (N >= 1) goes with --every")
+    for name in ("store", "data", "repository"):
+        if not Path(getattr(args, name)).is_dir():
+            raise FileNotFoundError(f"--{name} {getattr(args, name)}: no such directory")
+    repository = Path(args.repository)
+    request = RoundRequest(
+        store=Path(args.store),
+        data=Path(args.data),
+        repository=repository,
+        work=Path(args.work) if args.work else repository / ".retrain",
+        config=args.config,
+        overrides=tuple(args.set),
+        force=args.force,
+    )
+    context = init_distributed(args.device)
+
+    def report(outcome: RoundOutcome) -> None:
+        if context.is_main:
+            print(outcome.message, flush=True)
+            if outcome.report is not None:
+                print(f"report: {outcome.report}", flush=True)
+
+    try:
+        run_scheduled(request, context, every, args.times, report=report)
+    except LockHeld as error:
+        print(f"detmatch retrain: {error}", file=sys.stderr)
+        return 3
+    except ExportCheckError as error:
+        print(f"detmatch retrain: the candidate failed its export checks, nothing was "
+              f"published: {error}", file=sys.stderr)  # fmt: skip
+        return 1
+    except KeyboardInterrupt:
+        print("detmatch retrain: interrupted; the next run resumes the round", file=sys.stderr)
+        return 130
+    finally:
+        shutdown_distributed()
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from retrain.demo import run_demo
+
+    started = time.monotonic()
+    report = run_demo(args.out, args.size, args.seed, args.workers, args.device)
+    print(f"demo finished in {time.monotonic() - started:.0f} s")
+    print(f"report: {report}")
+    return 0
 
 
 def _store_export(args: argparse.Namespace) -> int:
@@ -398,7 +475,16 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--version", help="model version (default: the newest promoted one)")
     label.add_argument("--data", required=True, help="KITTI-layout data set root")
     _add_frame_selection(label)
-    label.add_argument("--out", required=True, help="output directory (gets 3d/, 2d/, labels/)")
+    label.add_argument("--out", help="output directory (gets 3d/, 2d/, labels/)")
+    label.add_argument(
+        "--store",
+        help="label store directory: store every frame and its labels as the service does "
+        "(what `detmatch retrain` reads); with or without --out",
+    )
+    label.add_argument("--shard", default="offline", help="the label store shard written")
+    label.add_argument("--namespace", default="default",
+                       help="the data set's namespace in the label store (keys are namespace + "
+                       "frame id, so two data sets' 000000 do not collide)")  # fmt: skip
     label.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
     label.set_defaults(handler=_label)
 
@@ -460,6 +546,84 @@ def build_parser() -> argparse.ArgumentParser:
     health.add_argument("--ca-cert", help="PEM certificate to verify a TLS server")
     health.add_argument("--server-name", help="the name the TLS certificate holds")
     health.set_defaults(handler=_health)
+
+    retrain = commands.add_parser(
+        "retrain",
+        help="a retraining round: the label store's frames -> a new version, promoted only if "
+        "it does not regress",
+        description="Continue teacher-student training from the served version with the "
+        "original labeled frames and every stored frame (all shards) in the unlabeled pool; "
+        "score the candidate and the served version on the held-out gate split ([data] "
+        "val_split of --data); export the candidate and promote it only if neither its 2D nor "
+        "its 3D moderate mAP drops more than [retrain] max_map_drop. Skips when the store "
+        "holds nothing new since the last round. Exit status: 0 done (promoted, not promoted "
+        "or skipped), 1 the export checks failed, 2 bad input, 3 another retraining holds the "
+        "repository's lock.",
+    )
+    retrain.add_argument("--store", required=True, help="label store directory (every shard)")
+    retrain.add_argument(
+        "--data", required=True, help="the original data set: labeled frames, pool and gate split"
+    )
+    retrain.add_argument("--repository", required=True, help="model repository")
+    retrain.add_argument(
+        "--config",
+        help="TOML config file or packaged config name (default: the served version's config, "
+        "kept in its manifest); it must describe the same detectors",
+    )
+    retrain.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a config key, e.g. retrain.steps=500, retrain.max_map_drop=0.5, "
+        "retrain.stored_labels=labeled, data.val_split=gate (repeatable)",
+    )
+    retrain.add_argument(
+        "--work",
+        help="working directory: the round in progress and past rounds' reports (default: "
+        "REPOSITORY/.retrain)",
+    )
+    retrain.add_argument(
+        "--every",
+        metavar="PERIOD",
+        help="run in the foreground, a round every PERIOD (90s, 15m, 24h, 7d)",
+    )
+    retrain.add_argument("--times", type=int, help="with --every: stop after N periods")
+    retrain.add_argument(
+        "--force", action="store_true", help="train even if the store holds nothing new"
+    )
+    retrain.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
+    )
+    retrain.set_defaults(handler=_retrain)
+
+    from retrain.demo import DEFAULT_OUT, DEFAULT_SIZE, SIZES, describe_sizes
+
+    demo = commands.add_parser(
+        "demo",
+        help="the whole product in one command: synthetic data, pre-training, DetMatch, "
+        "export, the service, labeling through gRPC, a retraining round, a report",
+        description="Generate a synthetic data set, pre-train both detectors, run DetMatch, "
+        "compare them on val, export, start `detmatch serve`, label unseen frames through gRPC "
+        "into the label store, run one retraining round from the stored labels (promoted if "
+        "it passes) and write a report directory; its path is printed at the end. Sizes: "
+        + describe_sizes(),
+    )
+    demo.add_argument("--size", choices=tuple(SIZES), default=DEFAULT_SIZE,
+                      help="how big a run (see above)")  # fmt: skip
+    demo.add_argument("--out", default=DEFAULT_OUT, help="output directory (new or empty)")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the synthetic data")
+    demo.add_argument("--workers", type=int, default=2, help="processes rendering frames")
+    demo.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where to train: auto (a CUDA GPU when there is one), cpu or cuda",
+    )
+    demo.set_defaults(handler=_demo)
 
     store = commands.add_parser("store", help="the label store of `detmatch serve`")
     store_commands = store.add_subparsers(dest="store_command", required=True, metavar="ACTION")

@@ -1,10 +1,10 @@
 """Experiment configuration: frozen dataclasses loaded from TOML; unknown keys are errors.
 
 A config file has one table per section below ([data], [detector2d], [detector3d], [train],
-[ssl]); every key is optional and defaults to the values here. Loss weights and learning rates
-are named fields, never string lookups. Every section checks its values' ranges when it is
-built (`__post_init__`), so a file, a `--set section.key=value` override and code all get the
-same ConfigError naming the section and the key.
+[ssl], [retrain]); every key is optional and defaults to the values here. Loss weights and
+learning rates are named fields, never string lookups. Every section checks its values' ranges
+when it is built (`__post_init__`), so a file, a `--set section.key=value` override and code
+all get the same ConfigError naming the section and the key.
 
 `load_config` takes a path or the name of a config shipped inside the package
 (`detmatch.configs`, the repository's configs/ directory): `load_config("tiny")`.
@@ -351,6 +351,32 @@ class SemiSupervisedConfig:
             check.fail("student_scale", "[low, high] with low <= high")
 
 
+# How a retraining round uses the label store's frames: "pool" (they join the unlabeled pool
+# and the teachers label them afresh each step) or "labeled" (their stored labels are fixed
+# training targets: the frames join the labeled frames).
+STORED_LABEL_USES = ("pool", "labeled")
+
+
+@dataclass(frozen=True)
+class RetrainConfig:
+    """A retraining round (`detmatch retrain`): teacher-student training of `steps` steps from
+    the promoted version, promoted only if neither modality's moderate mAP on the gate split
+    ([data] val_split) falls more than max_map_drop points (AP percent) below the promoted
+    version's. stored_labels: one of STORED_LABEL_USES (default: the unlabeled pool)."""
+
+    steps: int = 200
+    max_map_drop: float = 1.0
+    stored_labels: str = "pool"
+
+    SECTION: ClassVar[str] = "retrain"
+
+    def __post_init__(self) -> None:
+        check = _Checks(self)
+        check.positive("steps")
+        check.non_negative("max_map_drop")
+        check.one_of("stored_labels", STORED_LABEL_USES)
+
+
 @dataclass(frozen=True)
 class ExperimentConfig:
     data: DataConfig = field(default_factory=DataConfig)
@@ -359,6 +385,7 @@ class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     ssl: SemiSupervisedConfig = field(default_factory=SemiSupervisedConfig)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
+    retrain: RetrainConfig = field(default_factory=RetrainConfig)
 
     def __post_init__(self) -> None:
         if len(self.augment.gt_sample_counts) != len(self.data.classes):
@@ -496,5 +523,5 @@ def config_to_dict(config: ExperimentConfig) -> dict[str, Any]:
     """Plain nested dict (tuples as lists): for checkpoints and manifests."""
     return {
         section: to_plain(getattr(config, section))
-        for section in ("data", "detector2d", "detector3d", "train", "ssl", "augment")
+        for section in ("data", "detector2d", "detector3d", "train", "ssl", "augment", "retrain")
     }

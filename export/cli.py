@@ -1,7 +1,7 @@
 """`detmatch-export`: a checkpoint -> a checked, published version of a model repository.
 
     detmatch-export --checkpoint CKPT --repository DIR [--version V] [--promote]
-                    [--parity-data KITTI_DIR ...]
+                    [--parity-data KITTI_DIR ...] [--no-checkpoint]
     detmatch-export --repository DIR --list
     detmatch-export --repository DIR --promote V | --demote V
     detmatch-export --version
@@ -77,6 +77,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=2,
         help="rendered synthetic frames checked (alternately half and full KITTI resolution)",
     )
+    parser.add_argument(
+        "--no-checkpoint",
+        action="store_true",
+        help="do not copy the training checkpoint into the version (the manifest then only "
+        "references it by path and SHA-256; `detmatch retrain` needs it there to continue)",
+    )
     parser.add_argument("--rtol", type=float, default=1e-4, help="parity relative tolerance")
     parser.add_argument("--atol", type=float, default=1e-3, help="parity absolute tolerance")
     parser.add_argument("--quiet", action="store_true", help="print only the result")
@@ -93,6 +99,10 @@ def _list(repository: Path) -> int:
         manifest = load_manifest(repository / version)
         marks = ["promoted"] if version in promoted else []
         marks += ["served"] if version == served else []
+        if manifest.retraining is not None:
+            record = manifest.retraining
+            gate = "passed" if record.passed else "failed"
+            marks += [f"(round {record.round_id} from {record.parent_version}: gate {gate})"]
         step = manifest.training.step
         print(f"{version}  exported {manifest.exported_at}  step {step}  {' '.join(marks)}")
     return 0
@@ -114,6 +124,7 @@ def _export(args: argparse.Namespace) -> int:
             synthetic_frames=args.synthetic_frames,
             tolerance=Tolerance(args.rtol, args.atol),
             log=None if args.quiet else lambda message: print(message, file=sys.stderr),
+            keep_checkpoint=not args.no_checkpoint,
         )
     except ExportCheckError as error:
         print(f"detmatch-export: export failed, nothing was published: {error}", file=sys.stderr)

@@ -33,6 +33,7 @@ from serving.manifest import (
     PillarGridSpec,
     PillarPreprocessing,
     Postprocessing,
+    RetrainingRecord,
     TrainingRecord,
 )
 from serving.repository import MODEL_2D_FILE, MODEL_3D_FILE, file_record
@@ -60,8 +61,12 @@ def build_manifest(
     parity: ParityReport,
     exported_at: float,
     grid: PillarGrid,
+    checkpoint_copy: str | None = None,
+    retraining: RetrainingRecord | None = None,
 ) -> Manifest:
-    """The manifest of the version whose files are in `staging`; grid: the 3D detector's."""
+    """The manifest of the version whose files are in `staging`; grid: the 3D detector's;
+    checkpoint_copy: the name of the checkpoint's copy in `staging` (None: not kept);
+    retraining: the record of the retraining round that made the version."""
     detector2d, detector3d = config.detector2d, config.detector3d
     path_2d, path_3d = staging / MODEL_2D_FILE, staging / MODEL_3D_FILE
     plain_config = config_to_dict(config)
@@ -129,10 +134,12 @@ def build_manifest(
             data=plain_config["data"],
             config=plain_config,
             metrics=_json_safe(checkpoint.get("metrics", {})),
+            checkpoint_file=checkpoint_copy,
         ),
         parity=_json_safe(parity.to_json()),
         tools=tool_versions(),
         files={name: file_record(staging / name) for name in (MODEL_2D_FILE, MODEL_3D_FILE)},
+        retraining=retraining,
     )
 
 

@@ -6,7 +6,10 @@ export_checkpoint(checkpoint, repository)
      onnx.checker (full check) on each;
   3. onnxruntime, with the serving session options, against PyTorch on synthetic and
      real frames (export.parity); any disagreement raises ParityError;
-  4. manifest.json with the files' checksums; rename the staging directory to the version;
+  4. a copy of the training checkpoint (unless keep_checkpoint is False: then the manifest
+     only references it by path and SHA-256), manifest.json with the files' checksums (and
+     the retraining round's record, for a version a round made); rename the staging
+     directory to the version;
   5. optionally promote the version.
 Any failure removes the staging directory: no version appears.
 """
@@ -14,6 +17,7 @@ Any failure removes the staging directory: no version appears.
 from __future__ import annotations
 
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -24,7 +28,9 @@ from detmatch.models.pillars import pillarize
 from export.graphs import export_detector_2d, export_detector_3d
 from export.manifest import build_manifest
 from export.parity import ParityError, ParityReport, Tolerance, check_parity, load_parity_frames
+from serving.manifest import RetrainingRecord
 from serving.repository import (
+    CHECKPOINT_FILE,
     MODEL_2D_FILE,
     MODEL_3D_FILE,
     RepositoryError,
@@ -54,13 +60,17 @@ def export_checkpoint(
     synthetic_frames: int = 2,
     tolerance: Tolerance | None = None,
     log: Callable[[str], None] | None = None,
+    keep_checkpoint: bool = True,
+    retraining: RetrainingRecord | None = None,
 ) -> ExportResult:
     """Export, check and publish a checkpoint (see the module docstring).
 
     Parity runs on `synthetic_frames` rendered frames and on up to `parity_frames_per_source`
     frames of each KITTI-layout directory of parity_data; None means the checkpoint's own
-    training data ([data] root) when it is there. Raises ExportCheckError (ParityError) when a
-    check fails, RepositoryError when the version exists.
+    training data ([data] root) when it is there. keep_checkpoint: copy the checkpoint into
+    the version (what `detmatch retrain` continues from). retraining: the record of the round
+    that made these models. Raises ExportCheckError (ParityError) when a check fails,
+    RepositoryError when the version exists.
     """
     log = log or (lambda message: None)
     tolerance = tolerance or Tolerance()
@@ -105,10 +115,16 @@ def export_checkpoint(
             raise ParityError(f"onnxruntime disagrees with PyTorch: {report.summary()}")
         log(f"parity: {report.summary()}")
 
+        kept = None
+        if keep_checkpoint:
+            shutil.copyfile(checkpoint_file, staging / CHECKPOINT_FILE)
+            kept = CHECKPOINT_FILE
+
         def write_manifest(name: str) -> None:
             manifest = build_manifest(
-                name, staging, config, state, checkpoint_file, report, started, model_3d.grid
-            )
+                name, staging, config, state, checkpoint_file, report, started, model_3d.grid,
+                checkpoint_copy=kept, retraining=retraining,
+            )  # fmt: skip
             manifest.save(staging)
 
         name, path = publish(repository, staging, version, finalize=write_manifest)

@@ -6,11 +6,18 @@ A frozen dataclass tree with a schema version (`format`). `Manifest.load` reads 
 a version directory's manifest (errors name the file and the field, e.g.
 `manifest.json: models.detector3d.preprocessing.grid.pillar_size needs 2 values, got 3`);
 `Manifest.save` writes it atomically. Torch-free: the server reads it.
+
+Format 2 (written since retraining rounds) adds `training.checkpoint_file`, the training
+checkpoint kept inside the version directory, and `retraining`, the record of the round that
+made the version (its parent version, both models' gate figures, the decision and the data
+used). Format 1 manifests are still read: they have neither (the checkpoint is only referenced
+by path and SHA-256).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -21,7 +28,9 @@ from detmatch.files import write_json
 from detmatch.models.pillars import PillarGrid
 from detmatch.records import RecordError, from_plain, to_plain
 
-MANIFEST_FORMAT = 1
+MANIFEST_FORMAT = 2
+# Formats this reader accepts: 1 (before retraining rounds) and 2.
+READABLE_FORMATS = (1, 2)
 MANIFEST_FILE = "manifest.json"
 VERSION_PATTERN = re.compile(r"^[0-9]{6,}$")
 
@@ -174,7 +183,9 @@ class MatchingSpec:
 @dataclass(frozen=True)
 class TrainingRecord:
     """Where the models came from: the checkpoint (path and SHA-256), its step, the config it
-    was trained with (data included) and its evaluation metrics."""
+    was trained with (data included) and its evaluation metrics. checkpoint_file (format 2): the
+    checkpoint's copy inside the version directory, a plain file name whose SHA-256 is
+    checkpoint_sha256; None when the version keeps only the reference `checkpoint`."""
 
     checkpoint: str
     checkpoint_sha256: str
@@ -182,6 +193,115 @@ class TrainingRecord:
     data: dict[str, Any]
     config: dict[str, Any]
     metrics: dict[str, Any] = field(default_factory=dict)
+    checkpoint_file: str | None = None
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[0-9a-f]{64}", self.checkpoint_sha256):
+            raise ValueError(
+                f"checkpoint_sha256 is not a hex SHA-256 digest: {self.checkpoint_sha256!r}"
+            )
+        name = self.checkpoint_file
+        if name is not None and (not name or Path(name).name != name):
+            raise ValueError(f"checkpoint_file must be a plain file name, got {name!r}")
+
+
+GATED_MODALITIES = ("2d", "3d")
+
+
+@dataclass(frozen=True)
+class GateFigures:
+    """One model's moderate R40 AP (percent) on a gate split: per class and "mAP", for 2D
+    boxes, 3D boxes and bird's-eye-view boxes."""
+
+    ap_2d: dict[str, float]
+    ap_3d: dict[str, float]
+    ap_bev: dict[str, float]
+
+    def __post_init__(self) -> None:
+        for name in ("ap_2d", "ap_3d", "ap_bev"):
+            values = getattr(self, name)
+            if "mAP" not in values:
+                raise ValueError(f"{name} has no mAP")
+            for key, value in values.items():
+                if not (math.isfinite(value) and 0.0 <= value <= 100.0):
+                    raise ValueError(f"{name}.{key} must be an AP in [0, 100], got {value}")
+
+    def map(self, modality: str) -> float:
+        """The headline mAP of a modality: "2d", "3d" or "bev"."""
+        return getattr(self, f"ap_{modality}")["mAP"]
+
+
+def gate_passes(candidate: GateFigures, parent: GateFigures, max_map_drop: float) -> bool:
+    """The promotion rule of a retraining round: in neither modality (2D, 3D) does the
+    candidate's moderate mAP fall more than max_map_drop points below the parent's."""
+    return all(
+        candidate.map(modality) >= parent.map(modality) - max_map_drop
+        for modality in GATED_MODALITIES
+    )
+
+
+@dataclass(frozen=True)
+class RoundData:
+    """The frames a retraining round trained on, by source, and the gate's. store_snapshot:
+    `retrain.snapshot`'s id of the label store's content that was read; stored_labels: how
+    stored frames were used ("pool": unlabeled, "labeled": their labels as fixed targets);
+    excluded: stored frames left out because they are gate frames (identical point clouds)."""
+
+    labeled: int
+    unlabeled: int
+    stored: int
+    gate: int
+    excluded: int
+    store_snapshot: str
+    stored_labels: str
+    data_root: str
+    splits: dict[str, str]
+
+    def __post_init__(self) -> None:
+        for name in ("labeled", "unlabeled", "stored", "gate", "excluded"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not re.fullmatch(r"[0-9a-f]{64}", self.store_snapshot):
+            raise ValueError(f"store_snapshot is not a hex SHA-256 digest: {self.store_snapshot!r}")
+
+
+@dataclass(frozen=True)
+class RetrainingRecord:
+    """The retraining round that made a version: it trained `steps` steps from parent_version,
+    scored both models on the same gate split, and `passed` says whether the candidate met
+    `gate_passes` with max_map_drop (the PROMOTED marker says whether it was promoted).
+    config: the config the round was asked for, naming the original data set's splits (the
+    next round starts from it; training.config is what the round's own run used)."""
+
+    round_id: str
+    parent_version: str
+    started_at: str
+    method: str
+    steps: int
+    max_map_drop: float
+    candidate: GateFigures
+    parent: GateFigures
+    passed: bool
+    data: RoundData
+    config: dict[str, Any]
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", self.round_id):
+            raise ValueError(f"round_id: invalid round id {self.round_id!r}")
+        if not VERSION_PATTERN.match(self.parent_version):
+            raise ValueError(
+                f"parent_version: expected six or more digits, got {self.parent_version!r}"
+            )
+        if self.steps < 1:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if not (math.isfinite(self.max_map_drop) and self.max_map_drop >= 0):
+            raise ValueError(f"max_map_drop must be >= 0, got {self.max_map_drop}")
+        if self.passed != gate_passes(self.candidate, self.parent, self.max_map_drop):
+            raise ValueError(
+                f"passed: {self.passed} contradicts the figures (2D mAP {self.candidate.map('2d')}"
+                f" vs {self.parent.map('2d')}, 3D mAP {self.candidate.map('3d')} vs "
+                f"{self.parent.map('3d')}, max drop {self.max_map_drop})"
+            )
 
 
 @dataclass(frozen=True)
@@ -196,12 +316,20 @@ class Manifest:
     parity: dict[str, Any]
     tools: dict[str, str]
     files: dict[str, FileRecord]
+    retraining: RetrainingRecord | None = None
 
     def __post_init__(self) -> None:
-        if self.format != MANIFEST_FORMAT:
+        if self.format not in READABLE_FORMATS:
             raise ValueError(
-                f"format: manifest format {self.format!r}, this reader knows {MANIFEST_FORMAT}"
+                f"format: manifest format {self.format!r}, this reader knows "
+                f"{', '.join(map(str, READABLE_FORMATS))}"
             )
+        if self.format < 2 and (self.retraining or self.training.checkpoint_file):
+            raise ValueError(
+                "format: a format 1 manifest has no retraining record and no checkpoint_file"
+            )
+        if self.retraining is not None and self.retraining.parent_version == self.version:
+            raise ValueError(f"retraining.parent_version: {self.version} is this version")
         if not VERSION_PATTERN.match(self.version):
             raise ValueError(f"version: expected six or more digits, got {self.version!r}")
         if not self.classes or len(set(self.classes)) != len(self.classes):
@@ -209,6 +337,8 @@ class Manifest:
         for name in self.files:
             if Path(name).name != name or not name:
                 raise ValueError(f"files: file name {name!r} is not plain")
+        if self.training.checkpoint_file in self.files:
+            raise ValueError("training.checkpoint_file: the checkpoint is not a serving file")
         for key in ("detector2d", "detector3d"):
             listed = getattr(self.models, key).file
             if listed not in self.files:
@@ -228,10 +358,10 @@ class Manifest:
     @staticmethod
     def from_json(data: Any, where: str = MANIFEST_FILE) -> Manifest:
         """Validate plain JSON data; ManifestError names `where` and the field."""
-        if isinstance(data, dict) and data.get("format") != MANIFEST_FORMAT:
+        if isinstance(data, dict) and data.get("format") not in READABLE_FORMATS:
             raise ManifestError(
                 f"{where}: manifest format {data.get('format')!r}, this reader knows "
-                f"{MANIFEST_FORMAT}"
+                f"{', '.join(map(str, READABLE_FORMATS))}"
             )
         try:
             return from_plain(Manifest, data, "")

@@ -12,16 +12,23 @@ training/ or testing/ (a stock KITTI download needs no ImageSets). For each fram
                        KITTI files, which cover the camera's view only);
 and OUT/labeling.json: model version, thresholds, the frames' source, counts and time. Files
 are written atomically, so an interrupted run leaves whole files.
+
+With a `LabelStore` (`detmatch label --store DIR`) every frame and its labels are also stored,
+exactly as the service stores a labeled frame (the image as PNG: a JPEG is re-encoded), so
+batch labeling feeds retraining like the service does; out_dir may then be None.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+from PIL import Image
 from tqdm import tqdm
 
 from detmatch.data.kitti import write_objects
@@ -29,6 +36,7 @@ from detmatch.data.selection import FrameSelection
 from detmatch.files import atomic_write_bytes
 from serving.labeler import Labeler
 from serving.serialize import labels_to_json, labels_to_objects_2d, labels_to_objects_3d
+from serving.store import DEFAULT_NAMESPACE, LabelStore, StoreOutcome
 
 
 @dataclass(frozen=True)
@@ -39,39 +47,52 @@ class LabelingSummary:
     lidar_only: int
     model_version: str
     seconds: float
+    stored: int = 0  # frames newly written into the label store
+    already_stored: int = 0  # frames the store held already (left as they were)
 
 
 def label_split(
     labeler: Labeler,
     data_root: str | os.PathLike,
     frames: FrameSelection | str,
-    out_dir: str | os.PathLike,
+    out_dir: str | os.PathLike | None,
     tau_hung: float | None = None,
     progress: bool = True,
+    store: LabelStore | None = None,
+    namespace: str = DEFAULT_NAMESPACE,
 ) -> LabelingSummary:
-    """Label the selected frames of a KITTI-layout data set into out_dir (see the module
-    docstring); a string is an ImageSets split of training/."""
+    """Label the selected frames of a KITTI-layout data set into out_dir and/or store (see the
+    module docstring); a string is an ImageSets split of training/."""
     if isinstance(frames, str):
         frames = FrameSelection(split=frames, subset="training")
+    if out_dir is None and store is None:
+        raise ValueError("label_split needs an output directory, a label store or both")
     dataset, ids = frames.resolve(data_root)
-    out_dir = Path(out_dir)
+    out = None if out_dir is None else Path(out_dir)
     start = time.perf_counter()
-    labels = matched = 0
+    labels = matched = stored = 0
     thresholds: dict[str, float | None] = {}
     for frame_id in tqdm(ids, desc="label", dynamic_ncols=True, disable=not progress):
         frame = dataset.load_frame(frame_id, with_labels=False)
         result = labeler.label(frame.image, frame.points, frame.calib, tau_hung=tau_hung)
-        write_objects(
-            out_dir / "3d" / f"{frame_id}.txt",
-            labels_to_objects_3d(result, frame.calib),
-            decimals=4,
-        )
-        write_objects(out_dir / "2d" / f"{frame_id}.txt", labels_to_objects_2d(result), decimals=4)
-        record = labels_to_json(frame_id, result)
-        atomic_write_bytes(out_dir / "labels" / f"{frame_id}.json", json.dumps(record).encode())
         labels += len(result)
         matched += int(result.labels.matched.sum())
         thresholds = result.thresholds
+        if store is not None:
+            image = dataset.image_path(frame_id)
+            png = image.read_bytes() if image.suffix.lower() == ".png" else _png(frame.image)
+            put = store.put(frame_id, png, frame.points, frame.calib, result, namespace)
+            stored += put.outcome != StoreOutcome.UNCHANGED
+        if out is None:
+            continue
+        write_objects(
+            out / "3d" / f"{frame_id}.txt",
+            labels_to_objects_3d(result, frame.calib),
+            decimals=4,
+        )
+        write_objects(out / "2d" / f"{frame_id}.txt", labels_to_objects_2d(result), decimals=4)
+        record = labels_to_json(frame_id, result)
+        atomic_write_bytes(out / "labels" / f"{frame_id}.json", json.dumps(record).encode())
     summary = LabelingSummary(
         frames=len(ids),
         labels=labels,
@@ -79,7 +100,11 @@ def label_split(
         lidar_only=labels - matched,
         model_version=labeler.version,
         seconds=round(time.perf_counter() - start, 3),
+        stored=stored,
+        already_stored=len(ids) - stored if store is not None else 0,
     )
+    if out is None:
+        return summary
     record = {
         **summary.__dict__,
         "model_path": str(labeler.path.resolve()),
@@ -88,6 +113,18 @@ def label_split(
         "frames_selected": frames.describe(),
         "split": frames.split,
         "thresholds": thresholds,
+        "store": None
+        if store is None
+        else {"root": str(store.root.resolve()), "shard": store.shard},
     }
-    atomic_write_bytes(out_dir / "labeling.json", (json.dumps(record, indent=2) + "\n").encode())
+    atomic_write_bytes(out / "labeling.json", (json.dumps(record, indent=2) + "\n").encode())
     return summary
+
+
+def _png(pixels: np.ndarray) -> bytes:
+    """(H, W, 3) uint8 RGB as PNG bytes (what the store keeps)."""
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(pixels, dtype=np.uint8), mode="RGB").save(
+        buffer, format="PNG", compress_level=6
+    )
+    return buffer.getvalue()

@@ -3,6 +3,7 @@
     ROOT/000001/manifest.json        classes, inputs, preprocessing, thresholds, checksums, ...
     ROOT/000001/detector2d.onnx
     ROOT/000001/detector3d.onnx
+    ROOT/000001/checkpoint.pt        the training checkpoint (retraining continues from it)
     ROOT/000001/PROMOTED             present when the version may serve (a marker file)
     ROOT/.staging-XXXX/              an export in progress: never a version
 
@@ -34,6 +35,7 @@ from serving.manifest import VERSION_PATTERN, FileRecord, Manifest, ManifestErro
 PROMOTED_FILE = "PROMOTED"
 MODEL_2D_FILE = "detector2d.onnx"
 MODEL_3D_FILE = "detector3d.onnx"
+CHECKPOINT_FILE = "checkpoint.pt"
 STAGING_PREFIX = ".staging-"
 # A staging directory this old belongs to an export that was killed.
 STALE_STAGING_SECONDS = 24 * 3600
@@ -153,6 +155,30 @@ def verify_version(path: str | os.PathLike, manifest: Manifest | None = None) ->
         )
     verify_checksums(path, manifest)
     return manifest
+
+
+def training_checkpoint(path: str | os.PathLike, manifest: Manifest | None = None) -> Path:
+    """The training checkpoint a version's models came from, checked against the manifest's
+    SHA-256: the copy inside the version directory (training.checkpoint_file), else the file
+    the manifest references (format 1, or an export without the copy). RepositoryError when it
+    is missing or does not match."""
+    path = Path(path)
+    manifest = load_manifest(path) if manifest is None else manifest
+    training = manifest.training
+    if training.checkpoint_file is not None:
+        checkpoint = path / training.checkpoint_file
+        where = f"{checkpoint} (the version's copy)"
+    else:
+        checkpoint = Path(training.checkpoint)
+        where = f"{checkpoint} (referenced by {path / 'manifest.json'}; not kept in the version)"
+    if not checkpoint.is_file():
+        raise RepositoryError(f"version {path.name}'s training checkpoint is missing: {where}")
+    if sha256_file(checkpoint) != training.checkpoint_sha256:
+        raise RepositoryError(
+            f"version {path.name}'s training checkpoint {where} does not match the SHA-256 in "
+            "its manifest"
+        )
+    return checkpoint
 
 
 @contextlib.contextmanager

@@ -72,6 +72,10 @@ OUT_OF_RANGE = [
     ("ssl", "student_scale", [1.05, 0.95]),
     ("ssl", "student_scale", [0.0, 1.05]),
     ("ssl", "unlabeled_split", "a b"),
+    ("retrain", "steps", 0),
+    ("retrain", "max_map_drop", -1.0),
+    ("retrain", "max_map_drop", float("inf")),
+    ("retrain", "stored_labels", "pseudo"),
 ]
 
 

@@ -78,3 +78,30 @@ def test_kubernetes_deployment_probes_the_served_port():
     service = documents["Service"]["spec"]
     assert service["selector"] == documents["Deployment"]["spec"]["selector"]["matchLabels"]
     assert {p["targetPort"] for p in service["ports"]} <= set(ports)
+
+
+def test_retraining_cronjob_runs_one_round_at_a_time_on_the_served_volumes():
+    path = REPO / "examples" / "kubernetes" / "retrain-cronjob.yaml"
+    documents = {d["kind"]: d for d in yaml.safe_load_all(path.read_text())}
+    cronjob = documents["CronJob"]
+    assert cronjob["spec"]["concurrencyPolicy"] == "Forbid"
+    pod = cronjob["spec"]["jobTemplate"]["spec"]["template"]["spec"]
+    (container,) = pod["containers"]
+    args = dict(a.split("=", 1) for a in container["args"][1:])
+    assert container["args"][0] == "retrain"
+    mounts = {m["mountPath"]: m["name"] for m in container["volumeMounts"]}
+    claims = {v["name"]: v["persistentVolumeClaim"]["claimName"] for v in pod["volumes"]}
+    served = {d["kind"]: d for d in yaml.safe_load_all(KUBERNETES.read_text())}
+    serve_pod = served["Deployment"]["spec"]["template"]["spec"]
+    serve_claims = {v["name"]: v["persistentVolumeClaim"]["claimName"]
+                    for v in serve_pod["volumes"] if "persistentVolumeClaim" in v}  # fmt: skip
+    serve_args = dict(a.split("=", 1) for a in serve_pod["containers"][0]["args"][1:])
+    serve_mounts = {m["mountPath"]: m["name"] for m in serve_pod["containers"][0]["volumeMounts"]}
+    for flag in ("--repository", "--store"):  # the volumes the servers serve from
+        assert claims[mounts[args[flag]]] == serve_claims[serve_mounts[serve_args[flag]]], flag
+    data_claim = documents["PersistentVolumeClaim"]["metadata"]["name"]
+    assert claims[mounts[args["--data"]]] == data_claim
+    user = re.search(r"^USER\s+(\d+)", "\n".join(dockerfile_stages()["train"]), re.MULTILINE)
+    assert pod["securityContext"]["runAsUser"] == int(user.group(1))
+    cron = (REPO / "examples" / "cron" / "detmatch-retrain").read_text()
+    assert re.search(r"^0 3 \* \* \* detmatch \S+/detmatch retrain --store", cron, re.MULTILINE)

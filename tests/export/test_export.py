@@ -5,6 +5,7 @@ import numpy as np
 import onnx
 import pytest
 
+from detmatch.checkpoints import resolve_checkpoint
 from detmatch.data.kitti import KittiDataset
 from detmatch.models.build import load_detectors
 from export.cli import main as export_main
@@ -12,12 +13,14 @@ from export.onnx_export import export_checkpoint
 from export.parity import ParityError, PeakTies, Tolerance, check_parity, compare_decoded
 from serving.manifest import FileRecord, PillarGridSpec, TensorSpec
 from serving.repository import (
+    CHECKPOINT_FILE,
     MODEL_2D_FILE,
     MODEL_3D_FILE,
     RepositoryError,
     list_versions,
     load_manifest,
     served_version,
+    training_checkpoint,
     verify_checksums,
 )
 from serving.sessions import make_session
@@ -196,11 +199,16 @@ def test_cli_exports_next_version_lists_promotes_and_demotes(
         "--checkpoint", str(trained_checkpoint), "--repository", str(repository),
         "--synthetic-frames", "0", "--parity-data", str(synth_root), "--parity-frames", "1",
     ]  # fmt: skip
-    assert export_main([*args, "--quiet"]) == 0
+    assert export_main([*args, "--quiet", "--no-checkpoint"]) == 0
     assert "published (not promoted) version 000002" in capsys.readouterr().out
     assert list_versions(repository) == ["000001", "000002"]
     assert served_version(repository) == "000001"
     assert load_manifest(repository / "000002").version == "000002"
+    # --no-checkpoint: the manifest references the checkpoint (verified) and keeps no copy.
+    assert load_manifest(repository / "000002").training.checkpoint_file is None
+    assert not (repository / "000002" / CHECKPOINT_FILE).exists()
+    assert training_checkpoint(repository / "000002") == resolve_checkpoint(trained_checkpoint)
+    assert (repository / "000001" / CHECKPOINT_FILE).is_file()
     # An explicit version that exists is refused before any work.
     assert export_main([*args, "--version", "2"]) == 2
     assert "already exists" in capsys.readouterr().err

@@ -1,6 +1,7 @@
 import json
 
 import numpy as np
+from PIL import Image
 
 from detmatch.cli import main
 from detmatch.data.kitti import KittiDataset, read_image_set, read_objects
@@ -8,6 +9,7 @@ from detmatch.inference import detections_2d_to_objects, detections_3d_to_object
 from detmatch.structures import Detections
 from serving.labeler import Labeler
 from serving.serialize import labels_to_objects_2d, labels_to_objects_3d
+from serving.store import check_integrity, list_frames
 from tests.stock_kitti import TESTING_FRAMES, make_stock_kitti
 
 
@@ -134,3 +136,44 @@ def test_label_and_predict_read_testing_and_jpeg_frames(
     assert main(["label", "--repository", str(exported_repository), "--data", str(stock),
                  "--all", "--out", str(only)]) == 0  # fmt: skip
     assert json.loads((only / "labeling.json").read_text())["subset"] == "testing"
+
+
+def test_label_into_the_store_as_the_service_stores(
+    exported_repository, kitti_sample, tmp_path, capsys
+):
+    """`detmatch label --store`: every frame and its labels go into the label store (a JPEG
+    frame as PNG of the same pixels), the stored label rows are the --out files' rows, and
+    running it again stores nothing twice."""
+    stock = make_stock_kitti(kitti_sample, tmp_path / "kitti")
+    store, out = tmp_path / "store", tmp_path / "labels"
+    args = ["label", "--repository", str(exported_repository), "--data", str(stock), "--all",
+            "--store", str(store)]  # fmt: skip
+    assert main([*args, "--out", str(out), "--shard", "batch-1"]) == 0
+    assert "(3 frames stored, 0 already there)" in capsys.readouterr().out
+    records = list_frames(store)
+    assert [(r.frame_id, r.shard, r.model_version) for r in records] == [
+        (i, "batch-1", "000001") for i in ("000000", "000001", "000002")
+    ]
+    assert check_integrity(store) == []
+    stored = store / "shards" / "batch-1" / "training"
+    dataset = KittiDataset(stock)
+    assert dataset.image_path("000002").suffix == ".jpg"
+    for frame_id in ("000000", "000001", "000002"):
+        assert (stored / "label_2" / f"{frame_id}.txt").read_text() == (
+            out / "3d" / f"{frame_id}.txt"
+        ).read_text()
+        pixels = np.asarray(Image.open(stored / "image_2" / f"{frame_id}.png").convert("RGB"))
+        np.testing.assert_array_equal(pixels, dataset.load_frame(frame_id).image)
+        assert (stored / "velodyne" / f"{frame_id}.bin").read_bytes() == (
+            dataset.points_path(frame_id).read_bytes()
+        )
+    summary = json.loads((out / "labeling.json").read_text())
+    assert summary["store"]["shard"] == "batch-1" and summary["stored"] == 3
+
+    # Without --out; the frames are there already, so nothing is written twice.
+    assert main([*args, "--shard", "batch-1"]) == 0
+    assert "(0 frames stored, 3 already there)" in capsys.readouterr().out
+    assert len(list_frames(store)) == 3
+    assert main(["label", "--repository", str(exported_repository), "--data", str(stock),
+                 "--all"]) == 2  # fmt: skip
+    assert "give --out DIR" in capsys.readouterr().err

@@ -1,10 +1,23 @@
+import dataclasses
 import json
 import os
+import shutil
+from pathlib import Path
 
 import pytest
 
-from serving.manifest import Manifest, ManifestError
+from detmatch.files import sha256_file
+from detmatch.records import to_plain
+from serving.manifest import (
+    GateFigures,
+    Manifest,
+    ManifestError,
+    RetrainingRecord,
+    RoundData,
+    gate_passes,
+)
 from serving.repository import (
+    CHECKPOINT_FILE,
     RepositoryError,
     demote,
     file_record,
@@ -17,6 +30,7 @@ from serving.repository import (
     publish,
     served_version,
     staging_directory,
+    training_checkpoint,
     verify_checksums,
 )
 from tests.manifests import minimal_manifest
@@ -135,3 +149,80 @@ def test_the_manifest_round_trips_and_its_errors_name_the_field(tmp_path):
     (path / "manifest.json").write_text(json.dumps({**data, "extra": 1}))
     with pytest.raises(RepositoryError, match="unknown field 'extra'"):
         load_manifest(path)
+
+
+def _figures(ap_3d: float, ap_2d: float = 10.0) -> GateFigures:
+    return GateFigures(
+        ap_2d={"Car": ap_2d, "mAP": ap_2d}, ap_3d={"Car": ap_3d, "mAP": ap_3d},
+        ap_bev={"Car": ap_3d, "mAP": ap_3d},
+    )  # fmt: skip
+
+
+def _round_record(candidate: GateFigures, parent: GateFigures, passed: bool) -> dict:
+    """A round record as JSON, its `passed` as given (right or not)."""
+    data = RoundData(2, 3, 4, 5, 1, "a" * 64, "pool", "/data", {"gate": "val"})
+    right = gate_passes(candidate, parent, 1.0)
+    record = RetrainingRecord("r1", "000001", "2026-01-01T00:00:00Z", "detmatch", 10, 1.0,
+                              candidate, parent, right, data, {})  # fmt: skip
+    return {**to_plain(record), "passed": passed}
+
+
+def test_manifest_format_1_is_read_and_format_2_fields_are_checked(tmp_path):
+    record = file_record(_write(tmp_path / "model.onnx"))
+    plain = minimal_manifest("000002", {"model.onnx": record}).to_json()
+    old = {**plain, "format": 1}
+    del old["retraining"]
+    del old["training"]["checkpoint_file"]
+    assert Manifest.from_json(old).format == 1  # written before retraining rounds
+    with pytest.raises(ManifestError, match="a format 1 manifest has no retraining record"):
+        Manifest.from_json({**old, "training": {**old["training"], "checkpoint_file": "c.pt"}})
+    with pytest.raises(ManifestError, match="this reader knows 1, 2"):
+        Manifest.from_json({**plain, "format": 3})
+
+    passed = _round_record(_figures(30.0), _figures(30.5), passed=True)  # within 1 point
+    manifest = Manifest.from_json({**plain, "retraining": passed})
+    assert manifest.retraining.parent_version == "000001" and manifest.retraining.passed
+    assert gate_passes(_figures(30.0), _figures(30.5), 1.0)
+    assert not gate_passes(_figures(30.0), _figures(31.5), 1.0)  # 3D fell 1.5
+    assert not gate_passes(_figures(40.0, ap_2d=5.0), _figures(30.0), 1.0)  # 2D fell 5
+    contradicted = _round_record(_figures(20.0), _figures(30.0), passed=True)
+    with pytest.raises(ManifestError, match="retraining.*passed: True contradicts the figures"):
+        Manifest.from_json({**plain, "retraining": contradicted})
+    own_parent = _round_record(_figures(20.0), _figures(20.0), passed=True)
+    with pytest.raises(ManifestError, match="parent_version: 000002 is this version"):
+        Manifest.from_json({**plain, "version": "000002", "retraining": {**own_parent,
+                            "parent_version": "000002"}})  # fmt: skip
+    too_high = _round_record(_figures(30.0), _figures(20.0), passed=True)
+    too_high["candidate"]["ap_3d"]["Car"] = 101.0
+    with pytest.raises(ManifestError, match=r"retraining.candidate: ap_3d.Car must be an AP in"):
+        Manifest.from_json({**plain, "retraining": too_high})
+    with pytest.raises(ManifestError, match="checkpoint_file must be a plain file name"):
+        Manifest.from_json({**plain, "training": {**plain["training"],
+                            "checkpoint_file": "../x.pt"}})  # fmt: skip
+
+
+def _write(path, data: bytes = b"bytes"):
+    path.write_bytes(data)
+    return path
+
+
+def test_training_checkpoint_is_verified(tmp_path, exported_repository):
+    """The version keeps its checkpoint (its SHA-256 in the manifest); a format 1 version or
+    an export without the copy only references it; either is checked before use."""
+    version = exported_repository / "000001"
+    manifest = load_manifest(version)
+    assert training_checkpoint(version) == version / CHECKPOINT_FILE
+    assert sha256_file(version / CHECKPOINT_FILE) == manifest.training.checkpoint_sha256
+    assert CHECKPOINT_FILE not in manifest.files  # servers neither read nor verify it
+
+    copy = Path(shutil.copytree(version, tmp_path / "000001"))
+    (copy / CHECKPOINT_FILE).write_bytes(b"not the checkpoint")
+    with pytest.raises(RepositoryError, match="does not match the SHA-256 in its manifest"):
+        training_checkpoint(copy)
+    (copy / CHECKPOINT_FILE).unlink()
+    with pytest.raises(RepositoryError, match="training checkpoint is missing"):
+        training_checkpoint(copy)
+    referenced = dataclasses.replace(
+        manifest, training=dataclasses.replace(manifest.training, checkpoint_file=None)
+    )
+    assert training_checkpoint(copy, referenced) == Path(manifest.training.checkpoint)

@@ -1,0 +1,182 @@
+"""The frames of a retraining round, gathered into one KITTI-layout directory.
+
+    ROUND/training/{image_2,velodyne,calib,label_2}/ID.*   the original data set's frames
+                                                           (symbolic links) and copies of
+                                                           every stored frame, as store-ID
+    ROUND/ImageSets/round_labeled.txt     the original labeled frames ([data] train_split)
+    ROUND/ImageSets/round_unlabeled.txt   the original unlabeled pool ([ssl] unlabeled_split)
+                                          and the stored frames
+    ROUND/ImageSets/round_gate.txt        the held-out gate frames ([data] val_split)
+
+With `[retrain] stored_labels = "labeled"` the stored frames join round_labeled instead, their
+stored labels (the KITTI rows of `STORE/.../label_2`) being fixed training targets. The store
+is read through `serving.store.export_store` (every shard); a stored frame whose point cloud is
+byte-identical to a gate frame's is left out, so the gate stays held out even when the gate's
+frames were sent to the service.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from detmatch.data.kitti import FRAME_ID_PATTERN, KittiDataset, write_image_set
+from detmatch.files import sha256_file
+from retrain.snapshot import frame_digest, snapshot_id
+from serving.manifest import RoundData
+from serving.store import export_store
+
+# The ImageSets names inside a round's data directory.
+LABELED_SPLIT = "round_labeled"
+UNLABELED_SPLIT = "round_unlabeled"
+GATE_SPLIT = "round_gate"
+# Stored frames are renamed so that they never collide with the original data set's ids.
+STORED_PREFIX = "store-"
+FRAME_KINDS = ("image_2", "velodyne", "calib", "label_2")
+EXPORT_DIR = ".store_export"
+
+
+@dataclass(frozen=True)
+class SourceSplits:
+    """ImageSets names of the original data set: its labeled frames, its unlabeled pool and the
+    held-out gate."""
+
+    labeled: str
+    unlabeled: str
+    gate: str
+
+
+def stored_frame_id(exported_id: str) -> str:
+    """The round's id of a stored frame: store-ID, or a digest of ID when that is too long."""
+    name = f"{STORED_PREFIX}{exported_id}"
+    if FRAME_ID_PATTERN.match(name):
+        return name
+    return STORED_PREFIX + hashlib.sha256(exported_id.encode()).hexdigest()[:40]
+
+
+def compose_round_data(
+    data_root: str | os.PathLike,
+    store_root: str | os.PathLike,
+    out: str | os.PathLike,
+    sources: SourceSplits,
+    stored_labels: str = "pool",
+    progress: bool = True,
+) -> RoundData:
+    """Write the round's data directory `out` (replacing whatever is there; see the module
+    docstring) and return what went into it."""
+    data_root, out = Path(data_root), Path(out)
+    original = KittiDataset(data_root, "training")
+    labeled = original.ids(sources.labeled)
+    unlabeled = original.ids(sources.unlabeled)
+    gate = original.ids(sources.gate)
+    _check_splits(data_root, sources, labeled, unlabeled, gate)
+    frames = sorted(set(labeled) | set(unlabeled) | set(gate))
+    original.check_frames(frames)
+    missing = [i for i in (*labeled, *gate) if not original.label_path(i).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"{len(missing)} labeled or gate frames of {data_root} have no label file, e.g. "
+            f"{original.label_path(missing[0])}"
+        )
+    if out.exists():
+        shutil.rmtree(out)
+    training = out / "training"
+    for kind in FRAME_KINDS:
+        (training / kind).mkdir(parents=True)
+    for frame_id in frames:
+        for kind, source in _frame_files(original, frame_id).items():
+            os.symlink(source.resolve(), training / kind / source.name)
+    gate_clouds = {sha256_file(original.points_path(i)) for i in gate}
+    stored, excluded, snapshot = _import_store(
+        Path(store_root), out, gate_clouds, set(frames), progress
+    )
+    with_labels = stored_labels == "labeled"
+    write_image_set(
+        out / "ImageSets" / f"{LABELED_SPLIT}.txt", labeled + (stored if with_labels else [])
+    )
+    write_image_set(
+        out / "ImageSets" / f"{UNLABELED_SPLIT}.txt", unlabeled + ([] if with_labels else stored)
+    )
+    write_image_set(out / "ImageSets" / f"{GATE_SPLIT}.txt", gate)
+    return RoundData(
+        labeled=len(labeled),
+        unlabeled=len(unlabeled),
+        stored=len(stored),
+        gate=len(gate),
+        excluded=excluded,
+        store_snapshot=snapshot,
+        stored_labels=stored_labels,
+        data_root=str(data_root.resolve()),
+        splits={"labeled": sources.labeled, "unlabeled": sources.unlabeled, "gate": sources.gate},
+    )
+
+
+def _check_splits(
+    root: Path, sources: SourceSplits, labeled: list[str], unlabeled: list[str], gate: list[str]
+) -> None:
+    if not labeled:
+        raise ValueError(f"the labeled split {sources.labeled!r} of {root} has no frames")
+    if not gate:
+        raise ValueError(f"the gate split {sources.gate!r} of {root} has no frames")
+    for name, ids, key in (
+        (sources.labeled, labeled, "[data] train_split"),
+        (sources.unlabeled, unlabeled, "[ssl] unlabeled_split"),
+    ):
+        shared = sorted(set(ids) & set(gate))
+        if shared:
+            raise ValueError(
+                f"the gate split {sources.gate!r} ([data] val_split) shares {len(shared)} frames "
+                f"with {name!r} ({key}) of {root}, e.g. {shared[0]}: a round's gate must be "
+                "held out from its training frames"
+            )
+
+
+def _frame_files(dataset: KittiDataset, frame_id: str) -> dict[str, Path]:
+    """kind -> file of a frame (label_2 only where the frame has one)."""
+    files = {
+        "image_2": dataset.image_path(frame_id),
+        "velodyne": dataset.points_path(frame_id),
+        "calib": dataset.calib_path(frame_id),
+    }
+    if dataset.label_path(frame_id).is_file():
+        files["label_2"] = dataset.label_path(frame_id)
+    return files
+
+
+def _import_store(
+    store: Path, out: Path, gate_clouds: set[str], taken: set[str], progress: bool
+) -> tuple[list[str], int, str]:
+    """Export every stored frame and move it into out under its round id. Returns the round
+    ids, the number left out as gate frames and the snapshot id of everything exported."""
+    if not store.is_dir():
+        raise FileNotFoundError(f"no label store at {store}")
+    export = out / EXPORT_DIR
+    export_store(store, export)
+    exported = []
+    if (export / "training" / "image_2").is_dir():
+        exported = KittiDataset(export).ids()
+    stored, digests, excluded = [], [], 0
+    dataset = KittiDataset(export) if exported else None
+    for frame_id in tqdm(exported, desc="label store", disable=not progress, dynamic_ncols=True):
+        files = _frame_files(dataset, frame_id)
+        record = export / "labels" / f"{frame_id}.json"
+        file_digests = {kind: sha256_file(path) for kind, path in files.items()}
+        if record.is_file():
+            file_digests["labels"] = sha256_file(record)
+        digests.append(frame_digest(file_digests.values()))
+        if file_digests["velodyne"] in gate_clouds:
+            excluded += 1
+            continue
+        name = stored_frame_id(frame_id)
+        if name in taken:
+            raise ValueError(f"stored frame {frame_id} would be {name}, an id the data set has")
+        for kind, path in files.items():
+            os.replace(path, out / "training" / kind / f"{name}{path.suffix}")
+        stored.append(name)
+    shutil.rmtree(export)
+    return stored, excluded, snapshot_id(digests)
