@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -158,13 +159,13 @@ def run_demo(
             promote_version=True,
             log=lambda message: print(message, file=sys.stderr),
         )
-    with _server(out, stage) as target:
+    with _server(out, stage) as service:
         with stage("label", "label unseen frames through gRPC into the label store"):
-            _label_through_service(results, target)
+            _label_through_service(results, service)
         with stage("retrain", "a retraining round from the stored labels"):
             _retrain(results, context)
         with stage("swap", "the running server picks up the promoted version"):
-            _wait_for_swap(results, target)
+            _wait_for_swap(results, service)
     with stage("report", "report"):
         from retrain.demo_report import write_demo_report
 
@@ -216,9 +217,18 @@ def _train(config: ExperimentConfig, run_dir: Path, context: DistributedContext)
     return {k: v for k, v in state.metrics.items() if k in ("2d", "3d", "bev")}
 
 
+@dataclass(frozen=True)
+class Service:
+    """A running `detmatch serve`: its address and the bearer token its clients send."""
+
+    target: str
+    token: str
+
+
 @contextlib.contextmanager
-def _server(out: Path, stage: Stages) -> Iterator[str]:
-    """`detmatch serve` as a process on a free port; yields its target once it is SERVING."""
+def _server(out: Path, stage: Stages) -> Iterator[Service]:
+    """`detmatch serve` as a process on a free port, with a fresh bearer token (authentication
+    is never off); yields its target and token once it is SERVING."""
     from serving.health_check import wait_until_serving
 
     with stage("serve", "start `detmatch serve` (a real gRPC server process)"):
@@ -228,7 +238,11 @@ def _server(out: Path, stage: Stages) -> Iterator[str]:
                    str(out / "models"), "--store", str(out / "store"), "--port", "0",
                    "--shard", "demo", "--poll-s", "0.5", "--grace-s", "5"]  # fmt: skip
         stderr = (logs / "serve.log").open("w")
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True)
+        token = secrets.token_urlsafe(24)
+        environment = {**os.environ, "DETMATCH_TOKEN": token}
+        process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=stderr, text=True, env=environment
+        )
     try:
         line = process.stdout.readline()
         if not line.startswith("listening on "):
@@ -238,7 +252,7 @@ def _server(out: Path, stage: Stages) -> Iterator[str]:
         if status != "SERVING":
             raise RuntimeError(f"detmatch serve at {target} is {status} (see {logs})")
         print(f"serving at {target}; log: {logs / 'serve.log'}", file=sys.stderr)
-        yield target
+        yield Service(target, token)
     finally:
         if process.poll() is None:
             process.send_signal(signal.SIGTERM)
@@ -251,13 +265,13 @@ def _server(out: Path, stage: Stages) -> Iterator[str]:
         stderr.close()
 
 
-def _label_through_service(results: DemoResults, target: str) -> None:
+def _label_through_service(results: DemoResults, service: Service) -> None:
     from detmatch.data.kitti import KittiDataset
     from serving.client import LabelingClient
 
     frames = KittiDataset(results.out / "new_frames").ids()
     latencies, labels, versions = [], 0, set()
-    with LabelingClient(target) as client:
+    with LabelingClient(service.target, token=service.token) as client:
         for frame_id in tqdm(frames, desc="LabelFrame", unit="frame", dynamic_ncols=True):
             started = time.monotonic()
             response = client.label_kitti_frame(
@@ -294,14 +308,14 @@ def _retrain(results: DemoResults, context: DistributedContext) -> None:
     print(outcome.message, file=sys.stderr)
 
 
-def _wait_for_swap(results: DemoResults, target: str, timeout_s: float = 120.0) -> None:
+def _wait_for_swap(results: DemoResults, service: Service, timeout_s: float = 120.0) -> None:
     """Ask the running server for its version until it serves the promoted one; label one
     frame with it."""
     from serving.client import LabelingClient
 
     expected = results.round.get("version") if results.round["status"] == "promoted" else None
     started = time.monotonic()
-    with LabelingClient(target) as client:
+    with LabelingClient(service.target, token=service.token) as client:
         version = client.model_info().version
         while expected is not None and version != expected:
             if time.monotonic() - started > timeout_s:

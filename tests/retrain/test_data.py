@@ -16,6 +16,8 @@ from retrain.data import (
     stored_frame_id,
 )
 from retrain.snapshot import store_snapshot
+from serving.store import DEFAULT_NAMESPACE
+from serving.store_layout import frame_paths
 from tests.conftest import KITTI_SAMPLE
 
 SOURCES = SourceSplits("labeled", "unlabeled", "val")
@@ -59,7 +61,7 @@ def test_round_data_gathers_every_shard_and_keeps_the_gate_out(
     assert read_image_set(out / "ImageSets" / f"{GATE_SPLIT}.txt") == gate
     dataset = KittiDataset(out)
     dataset.check_frames(labeled + unlabeled + gate)
-    kept = store / "shards" / "a" / "training" / "label_2" / f"{kitti[0]}.txt"
+    kept = store / "shards" / "a" / frame_paths(DEFAULT_NAMESPACE, kitti[0])["label_2"]
     assert dataset.label_path(stored[0]).read_text() == kept.read_text()  # the stored labels
     assert len(read_objects(kept)) > 0
     assert dataset.points_path(gate[0]).is_symlink()  # the original frames are linked

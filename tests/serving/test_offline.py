@@ -155,7 +155,7 @@ def test_label_into_the_store_as_the_service_stores(
         (i, "batch-1", "000001") for i in ("000000", "000001", "000002")
     ]
     assert check_integrity(store) == []
-    stored = store / "shards" / "batch-1" / "training"
+    stored = store / "shards" / "batch-1" / "namespaces" / "default" / "training"
     dataset = KittiDataset(stock)
     assert dataset.image_path("000002").suffix == ".jpg"
     for frame_id in ("000000", "000001", "000002"):
