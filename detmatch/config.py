@@ -99,6 +99,8 @@ DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "fp32", "bf16")
 SCHEDULES_2D = ("constant", "step")
 SCHEDULES_3D = ("constant", "onecycle")
+CONSISTENCY_REDUCTIONS = ("pairs", "frames")
+PSEUDO_2D_NORMALIZERS = ("pseudo-labels", "labeled")
 
 
 @dataclass(frozen=True)
@@ -325,6 +327,18 @@ class SemiSupervisedConfig:
     consistency_class_weight: float = 2.0
     consistency_l1_weight: float = 20.0
     consistency_giou_weight: float = 2.0
+    # How the consistency loss is reduced: "pairs" (every matched pair of the batch alike,
+    # focal summed over classes) or "frames" (the authors' code: focal a mean over N x C, each
+    # term a per-frame mean, then a mean over the frames with matches).
+    consistency_reduction: str = "pairs"
+    # The authors' candidate filter before the consistency matching: BEV NMS at IoU 0.1 of the
+    # 3D student's boxes (score > the detector's threshold), then 2D NMS at 0.5 on their
+    # projections.
+    consistency_nms: bool = False
+    # What the 2D pseudo-label heatmap loss is averaged over: "pseudo-labels" (their own peaks)
+    # or "labeled" (the labeled half's objects, so that a few pseudo-labels do not multiply
+    # the weight of every background cell).
+    pseudo_2d_normalizer: str = "pseudo-labels"
     ema_offset: int = 100
     ema_max_decay: float = 0.999
     student_rotation: float = 0.7853981633974483
@@ -343,6 +357,8 @@ class SemiSupervisedConfig:
         check.non_negative(
             "consistency_class_weight", "consistency_l1_weight", "consistency_giou_weight"
         )
+        check.one_of("consistency_reduction", CONSISTENCY_REDUCTIONS)
+        check.one_of("pseudo_2d_normalizer", PSEUDO_2D_NORMALIZERS)
         check.positive("ema_offset")
         check.below_one("ema_max_decay")
         check.non_negative("student_rotation")

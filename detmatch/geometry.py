@@ -431,3 +431,14 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         & (np.abs(local_y) <= half[..., 1])
         & (np.abs(offset[..., 2]) <= half[..., 2])
     )
+
+
+def greedy_nms(iou: np.ndarray, scores: np.ndarray, threshold: float) -> np.ndarray:
+    """Indices kept by greedy non-maximum suppression, best score first: a box is dropped when
+    its IoU (from the (N, N) matrix) with a kept box exceeds threshold."""
+    order = np.argsort(-np.asarray(scores), kind="stable")
+    kept: list[int] = []
+    for i in order:
+        if not kept or iou[i, kept].max() <= threshold:
+            kept.append(int(i))
+    return np.asarray(kept, dtype=np.int64)

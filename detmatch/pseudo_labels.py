@@ -95,8 +95,10 @@ def match_detections(
         boxes_2d=np.concatenate(
             [detections_2d.boxes[index_2d].reshape(-1, 4), np.full((n_outside, 4), np.nan)]
         ),
-        class_3d=detections_3d.classes[all_3d].astype(np.int64),
-        class_2d=np.concatenate([detections_2d.classes[index_2d].astype(np.int64), absent]),
+        class_3d=detections_3d.probabilities[all_3d].argmax(axis=1).astype(np.int64),
+        class_2d=np.concatenate(
+            [detections_2d.probabilities[index_2d].argmax(axis=1).astype(np.int64), absent]
+        ),
         score_3d=detections_3d.scores[all_3d].astype(np.float64),
         score_2d=np.concatenate([detections_2d.scores[index_2d], np.full(n_outside, np.nan)]),
         cost=np.concatenate([pair_cost, np.full(n_outside, np.nan)]),

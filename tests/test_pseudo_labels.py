@@ -54,3 +54,15 @@ def test_no_detections(calib):
 def test_confidence_thresholding():
     det = detections(np.zeros((3, 4)), [[0.9, 0.0, 0.0], [0.2, 0.5, 0.0], [0.1, 0.0, 0.75]])
     assert confident_detections(det, 0.7).classes.tolist() == [0, 2]
+
+
+def test_label_classes_are_the_argmax_of_the_probabilities(calib):
+    """A peak decoded in one class channel whose probability vector favours another class is
+    labeled with the argmax, the class the matching cost compared (DESIGN.md step 3)."""
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    probabilities = np.array([[0.35, 0.05, 0.9]])
+    det_3d = Detections(np.array([car]), np.array([0.35]), np.array([0]), probabilities)
+    car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)
+    det_2d = Detections(car_2d, np.array([0.6]), np.array([1]), np.array([[0.1, 0.6, 0.95]]))
+    labels = match_detections(det_3d, det_2d, calib, IMAGE)
+    assert labels.class_3d.tolist() == [2] and labels.class_2d.tolist() == [2]

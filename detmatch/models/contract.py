@@ -12,8 +12,10 @@ classes). A detector is an `nn.Module` that implements:
   traceable for ONNX.
 - `build_targets(labels, ...) -> targets`: one frame's typed training targets (a dataclass
   of the detector's own) from `LabeledBoxes`, ground truth or pseudo-labels alike.
-- `loss(outputs, targets, box_regression=True) -> dict[str, Tensor]`: named, weighted loss
-  terms; without box_regression only the classification terms (the 2D pseudo-label loss).
+- `loss(outputs, targets, box_regression=True, normalizer=None) -> dict[str, Tensor]`: named,
+  weighted loss terms; without box_regression only the classification terms (the 2D
+  pseudo-label loss); normalizer overrides the object count the classification loss is
+  averaged over.
 - 3D only: `consistency_candidates(outputs) -> ConsistencyCandidates`, the differentiable
   decode the 2D-teacher -> 3D-student consistency loss pulls on, and the class attribute
   `consistency_gradient`, which says where that loss's box gradient goes. A detector with a
@@ -87,8 +89,15 @@ class Detector2D(nn.Module, abc.ABC):
 
     @abc.abstractmethod
     def loss(
-        self, outputs: Sequence[torch.Tensor], targets: Sequence[Any], box_regression: bool = True
-    ) -> dict[str, torch.Tensor]: ...
+        self,
+        outputs: Sequence[torch.Tensor],
+        targets: Sequence[Any],
+        box_regression: bool = True,
+        normalizer: float | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """normalizer: the object count the classification loss is averaged over (None: the
+        targets' own; pseudo-labels may use the labeled batch's, so that few pseudo-labels do
+        not inflate the background's weight)."""
 
     def detect(self, outputs: Sequence[torch.Tensor]) -> list[Detections]:
         """Per-frame detections above the score threshold, boxes in input pixels."""
@@ -147,8 +156,15 @@ class Detector3D(nn.Module, abc.ABC):
 
     @abc.abstractmethod
     def loss(
-        self, outputs: Sequence[torch.Tensor], targets: Sequence[Any], box_regression: bool = True
-    ) -> dict[str, torch.Tensor]: ...
+        self,
+        outputs: Sequence[torch.Tensor],
+        targets: Sequence[Any],
+        box_regression: bool = True,
+        normalizer: float | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """normalizer: the object count the classification loss is averaged over (None: the
+        targets' own; pseudo-labels may use the labeled batch's, so that few pseudo-labels do
+        not inflate the background's weight)."""
 
     @abc.abstractmethod
     def consistency_candidates(self, outputs: Sequence[torch.Tensor]) -> ConsistencyCandidates: ...

@@ -114,6 +114,8 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             giou_weight=ssl.consistency_giou_weight,
             use_class=ssl.consistency_class,
             use_box=ssl.consistency_box,
+            reduction=ssl.consistency_reduction,
+            nms=ssl.consistency_nms,
         )
 
     def batches(self) -> Iterator[tuple[Batch, UnlabeledBatch]]:
@@ -151,7 +153,12 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             "supervised_2d": student_2d.loss(labeled_2d, targets_2d),
             "supervised_3d": student_3d.loss(labeled_3d, targets_3d),
             # The 2D pseudo-label loss is classification only (Unbiased Teacher).
-            "pseudo_2d": student_2d.loss(unlabeled_2d, pseudo_2d, box_regression=False),
+            "pseudo_2d": student_2d.loss(
+                unlabeled_2d,
+                pseudo_2d,
+                box_regression=False,
+                normalizer=labeled.objects_2d if ssl.pseudo_2d_normalizer == "labeled" else None,
+            ),  # fmt: skip
             "pseudo_3d": student_3d.loss(unlabeled_3d, pseudo_3d),
         }
         loss = (

@@ -154,12 +154,12 @@ class TinyPillarNet3D(Detector3D):
             np.asarray(boxes, dtype=np.float32).reshape(-1, BOX_CHANNELS),
         )  # fmt: skip
 
-    def loss(self, outputs, targets, box_regression: bool = True):
+    def loss(self, outputs, targets, box_regression: bool = True, normalizer=None):
         (maps,) = outputs
         heatmap, box = maps[:, : self.num_classes], maps[:, self.num_classes :]
         target = tensor_like(np.stack([t.heatmap for t in targets]), maps)
         area = tensor_like(np.stack([t.area for t in targets]), maps)
-        losses = {"heatmap": heatmap_focal_loss(heatmap, target, area)}
+        losses = {"heatmap": heatmap_focal_loss(heatmap, target, area, normalizer)}
         if box_regression:
             terms = [
                 F.l1_loss(box[b].flatten(1)[:, tensor_like(t.index, maps)].t(),

@@ -204,3 +204,14 @@ def test_pillar_encoder_training_path_equals_the_padded_layout(detector_3d):
         reference(pillars.features.double(), pillars.counts).detach(),
         rtol=1e-4, atol=1e-4,
     )  # fmt: skip
+
+
+def test_the_heatmap_loss_normalizer():
+    from detmatch.models.common import heatmap_focal_loss
+
+    logits = torch.full((1, 2, 6, 6), -1.0)
+    target = torch.zeros(1, 2, 6, 6)
+    target[0, 0, 2, 2] = 1.0
+    own = heatmap_focal_loss(logits, target)  # one peak: divided by 1
+    assert heatmap_focal_loss(logits, target, normalizer=8).item() == pytest.approx(own / 8)
+    assert heatmap_focal_loss(logits, torch.zeros_like(target), normalizer=0).item() > 0

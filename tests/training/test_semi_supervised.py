@@ -180,3 +180,20 @@ def test_confidence_run(synth_root, tmp_path):
     config = json.loads((tmp_path / "conf" / "config.json").read_text())
     assert config["ssl"]["method"] == "confidence"
     assert load_config(TINY).ssl.tau_3d == 0.3 and load_config(TINY).ssl.tau_2d == 0.7
+
+
+def test_consistency_reductions_and_candidate_nms():
+    from detmatch.training.consistency import _reduce, candidate_nms
+
+    one, three = torch.tensor([1.0]), torch.tensor([2.0, 2.0, 5.0])
+    assert _reduce([one, three], "pairs").item() == pytest.approx(10.0 / 4)
+    assert _reduce([one, three], "frames").item() == pytest.approx((1.0 + 3.0) / 2)
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    shifted = [15.3, 2.1, -0.9, 3.9, 1.6, 1.5, 0.2]  # a duplicate peak of the same car
+    apart = [15.0, -3.0, -0.9, 3.9, 1.6, 1.5, 0.2]  # beside it in 3D, overlapping in the image
+    boxes = np.array([car, shifted, apart])
+    projected = np.array([[100, 100, 200, 180], [102, 101, 203, 181], [150, 100, 250, 180]])
+    rows = candidate_nms(boxes, projected.astype(float), np.array([0.6, 0.9, 0.5]))
+    assert rows.tolist() == [1, 2]  # the best of the duplicates; the third survives both NMS
+    projected[2] = [101, 100, 201, 180]  # now nearly the first's projection: 2D NMS drops it
+    assert candidate_nms(boxes, projected.astype(float), np.array([0.6, 0.9, 0.5])).tolist() == [1]
