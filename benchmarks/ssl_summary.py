@@ -1,9 +1,10 @@
-"""Mean and per-seed moderate R40 mAP of several ssl_benchmark.py reports (one per split seed).
+"""Mean and per-seed results of several ssl_benchmark.py reports (one per split seed).
 
-    python benchmarks/ssl_summary.py runs/ssl_gpu/s*/ssl_benchmark.json
+    python benchmarks/ssl_summary.py runs/ssl/s*/ssl_benchmark.json [--split val|dev]
 
-Prints, per modality, one row per method: the mAP of each report, their mean, and the mean
-gain over labeled-only; then the pseudo-label precision / recall of each rule per report.
+Prints, per modality, one row per method: moderate R40 mAP of each seed, their mean, and the
+mean gain over the better of labeled-only and its EMA control (per seed); per-class means;
+then the pseudo-label precision / recall / F1 of each rule (Car) per seed.
 """
 
 from __future__ import annotations
@@ -12,43 +13,52 @@ import argparse
 import json
 from pathlib import Path
 
+BASELINES = ("labeled-only", "control")
+
+
+def baseline(results: dict, modality: str) -> float:
+    """The better labeled-only row of one report (what a gain is measured against)."""
+    return max(results[b][modality]["mAP"] for b in BASELINES if b in results)
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", type=Path, help="ssl_benchmark.json files")
+    parser.add_argument("--split", default="val", choices=("val", "dev"))
     args = parser.parse_args()
     reports = [json.loads(path.read_text()) for path in args.reports]
-    names = [path.parent.name for path in args.reports]
+    names = [f"seed {report['seed']}" for report in reports]
+    results = [report["results"][args.split] for report in reports]
     methods: list[str] = []
-    for report in reports:
-        methods += [m for m in report["results"] if m not in methods]
-    for modality in ("3d", "2d", "bev"):
-        print(f"\n{modality.upper()} mAP (moderate R40)")
-        print("| method | " + " | ".join(names) + " | mean | mean gain |")
-        print("|---|" + "---|" * (len(names) + 2))
+    for result in results:
+        methods += [m for m in result if m not in methods]
+    classes = [c for c in next(iter(results[0].values()))["3d"] if c != "mAP"]
+    for modality in ("3d", "2d"):
+        print(f"\n{args.split}: {modality.upper()} mAP (moderate R40), gain over the better of "
+              "labeled-only and its control")  # fmt: skip
+        print("| method | " + " | ".join(names) + " | mean | " + " | ".join(classes)
+              + " | mean gain |")  # fmt: skip
+        print("|---|" + "---|" * (len(names) + len(classes) + 2))
         for method in methods:
-            values, gains = [], []
-            for report in reports:
-                row = report["results"].get(method)
-                values.append(None if row is None else row[modality]["mAP"])
-                if row is not None:
-                    gains.append(
-                        row[modality]["mAP"] - report["results"]["labeled-only"][modality]["mAP"]
-                    )
-            present = [v for v in values if v is not None]
-            cells = ["-" if v is None else f"{v:.1f}" for v in values]
-            mean = sum(present) / len(present)
-            gain = sum(gains) / len(gains)
-            print(f"| {method} | " + " | ".join(cells) + f" | {mean:.1f} | {gain:+.1f} |")
-    print("\nPseudo-labels of the pre-trained teacher, Car precision / recall")
+            rows = [r[method][modality] for r in results if method in r]
+            cells = [f"{r[method][modality]['mAP']:.1f}" if method in r else "-" for r in results]
+            mean = sum(row["mAP"] for row in rows) / len(rows)
+            per_class = [sum(row[c] for row in rows) / len(rows) for c in classes]
+            gains = [r[method][modality]["mAP"] - baseline(r, modality) for r in results
+                     if method in r]  # fmt: skip
+            gain = "" if method in BASELINES else f"{sum(gains) / len(gains):+.1f}"
+            print(f"| {method} | " + " | ".join(cells) + f" | {mean:.1f} | "
+                  + " | ".join(f"{v:.1f}" for v in per_class) + f" | {gain} |")  # fmt: skip
+    print("\nPseudo-labels of the pre-trained teachers, Car precision / recall / F1")
     print("| rule | modality | " + " | ".join(names) + " |")
     print("|---|---|" + "---|" * len(names))
     for rule in ("confidence", "detmatch"):
         for modality in ("3d", "2d"):
             cells = []
             for report in reports:
-                quality = report["pseudo_label_quality"][rule]["Car"][modality]
-                cells.append(f"{quality['precision']:.3f} / {quality['recall']:.3f}")
+                q = report["pseudo_label_quality"][rule]["Car"][modality]
+                f1 = 2 * q["precision"] * q["recall"] / max(q["precision"] + q["recall"], 1e-12)
+                cells.append(f"{q['precision']:.3f} / {q['recall']:.3f} / {f1:.3f}")
             print(f"| {rule} | {modality} | " + " | ".join(cells) + " |")
     print("\nrerun: python benchmarks/ssl_summary.py " + " ".join(map(str, args.reports)))
 
