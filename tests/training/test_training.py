@@ -300,3 +300,23 @@ def test_a_bf16_training_step_agrees_with_fp32(synth_root, tmp_path):
     assert bf16["loss_2d"] != fp32["loss_2d"]  # bf16 really ran
     with pytest.raises(ConfigError, match=r"\[train\] precision must be one of"):
         load_config(TINY).replace("train", precision="fp16")
+
+
+def test_signed_box_errors_match_confident_detections_to_nearby_truth():
+    from detmatch.structures import Detections
+    from detmatch.training.evaluation import signed_box_errors, summarise_errors
+
+    truth = np.array([[10.0, 0.0, -0.9, 4.0, 1.6, 1.5, 0.0], [30.0, 5.0, -0.9, 4.0, 1.6, 1.5, 0.0]])
+    boxes = np.array([
+        [10.3, 0.2, -1.0, 3.2, 1.7, 1.5, 0.1],  # 0.8 m short, near the first car
+        [30.0, 5.0, -0.9, 4.5, 1.6, 1.4, 0.0],  # 0.5 m long, the second car
+        [50.0, 0.0, -0.9, 4.0, 1.6, 1.5, 0.0],  # nothing near: ignored
+        [10.0, 0.0, -0.9, 9.0, 9.0, 9.0, 0.0],  # not confident: ignored
+    ])  # fmt: skip
+    probabilities = np.array([[0.9, 0, 0], [0.8, 0, 0], [0.9, 0, 0], [0.2, 0, 0]])
+    detections = Detections(boxes, probabilities[:, 0], np.zeros(4, dtype=int), probabilities)
+    errors = signed_box_errors(detections, truth)
+    np.testing.assert_allclose(errors, [[-0.8, 0.1, 0.0, -0.1], [0.5, 0.0, -0.1, 0.0]], atol=1e-9)
+    summary = summarise_errors([errors, np.zeros((0, 4))])
+    assert summary["count"] == 2 and summary["l"] == pytest.approx(-0.15)
+    assert summarise_errors([])["l"] is None
