@@ -101,6 +101,7 @@ SCHEDULES_2D = ("constant", "step")
 SCHEDULES_3D = ("constant", "onecycle")
 CONSISTENCY_REDUCTIONS = ("pairs", "frames")
 PSEUDO_2D_NORMALIZERS = ("pseudo-labels", "labeled")
+CONSISTENCY_TARGETS = ("teacher", "labels-projected", "labels-annotated")
 
 
 @dataclass(frozen=True)
@@ -339,6 +340,11 @@ class SemiSupervisedConfig:
     # or "labeled" (the labeled half's objects, so that a few pseudo-labels do not multiply
     # the weight of every background cell).
     pseudo_2d_normalizer: str = "pseudo-labels"
+    # Diagnostics only, with a labeled [ssl] unlabeled_split: the consistency loss's 2D targets
+    # are the frames' labels instead of the 2D teacher's matched boxes ("labels-projected": the
+    # 3D labels projected; "labels-annotated": the label files' 2D boxes). "teacher" is the
+    # method.
+    consistency_targets: str = "teacher"
     ema_offset: int = 100
     ema_max_decay: float = 0.999
     student_rotation: float = 0.7853981633974483
@@ -359,6 +365,7 @@ class SemiSupervisedConfig:
         )
         check.one_of("consistency_reduction", CONSISTENCY_REDUCTIONS)
         check.one_of("pseudo_2d_normalizer", PSEUDO_2D_NORMALIZERS)
+        check.one_of("consistency_targets", CONSISTENCY_TARGETS)
         check.positive("ema_offset")
         check.below_one("ema_max_decay")
         check.non_negative("student_rotation")

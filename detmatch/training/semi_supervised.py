@@ -9,18 +9,21 @@ losses (supervised + pseudo-label + consistency), optimiser steps, EMA update of
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from detmatch.checkpoints import load_checkpoint, resolve_checkpoint
 from detmatch.config import ExperimentConfig
-from detmatch.data.dataset import Batch, FrameDataset
+from detmatch.data.dataset import Batch, FrameDataset, Sample
 from detmatch.data.unlabeled import UnlabeledBatch, UnlabeledDataset, collate_unlabeled
 from detmatch.inference import predict_batch
 from detmatch.models.contract import Detector2D, Detector3D, split_outputs
+from detmatch.structures import LabeledBoxes
 from detmatch.training.consistency import ConsistencyWeights, consistency_loss
 from detmatch.training.distributed import DistributedContext
 from detmatch.training.ema import ema_decay, ema_update
@@ -37,6 +40,14 @@ def _frozen_copy(model: torch.nn.Module) -> torch.nn.Module:
 
 def _total(losses: dict[str, torch.Tensor]) -> torch.Tensor:
     return sum(losses.values())
+
+
+def label_targets(sample: Sample, num_classes: int) -> LabeledBoxes:
+    """A labeled frame's 2D training boxes as consistency targets: original pixels, certain
+    (one-hot) class probabilities (the diagnostics of [ssl] consistency_targets)."""
+    boxes = sample.image_transform.invert(sample.gt_2d.boxes)
+    certain = np.eye(num_classes)[sample.gt_2d.classes]
+    return LabeledBoxes(boxes, sample.gt_2d.classes, certain)
 
 
 def pseudo_label_targets(
@@ -99,10 +110,12 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
     ) -> None:
         super().__init__(config, run_dir, context)
         ssl, data = config.ssl, config.data
+        diagnostic = ssl.consistency_targets != "teacher"
         frames = FrameDataset(
             data.root, ssl.unlabeled_split, data.classes, data.image_size, self.train_set.grid,
             augment=True, flip_probability=config.train.flip_probability,
-            seed=config.train.seed + 1, with_labels=False,
+            seed=config.train.seed + 1, with_labels=diagnostic,
+            projected_2d=ssl.consistency_targets == "labels-projected",
         )  # fmt: skip
         self.unlabeled_set = UnlabeledDataset(
             frames, ssl.student_rotation, ssl.student_scale, photometric=ssl.photometric
@@ -141,6 +154,11 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             for s, (d2, d3) in zip(unlabeled.weak.samples, detections, strict=True)
         ]
         pseudo_2d, pseudo_3d = pseudo_label_targets(student_2d, student_3d, unlabeled, pseudo)
+        if ssl.consistency_targets != "teacher":  # diagnostics: the labels as 2D targets
+            pseudo = [
+                dataclasses.replace(p, consistency_2d=label_targets(s, student_3d.num_classes))
+                for p, s in zip(pseudo, unlabeled.weak.samples, strict=True)
+            ]
 
         # 3. Students: one forward each over the labeled frames and the strong unlabeled views.
         student_2d.train()

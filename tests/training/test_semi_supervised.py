@@ -165,6 +165,15 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
         teacher_shift = (after[f"model_{key}"][name] - before[f"model_{key}"][name]).abs().sum()
         assert 0 < teacher_shift < student_shift
 
+    # Diagnostics: the frames' own labels as the consistency targets (the unlabeled split is
+    # labeled here): every confident projected candidate near a label is pulled.
+    assert main([*args, "--out", str(tmp_path / "diagnostic"), "--steps", "2", "--method",
+                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
+                 "ssl.consistency_targets=labels-projected"]) == 0  # fmt: skip
+    lines = (tmp_path / "diagnostic" / "metrics.jsonl").read_text().splitlines()
+    pairs = [json.loads(line)["consistency_pairs"] for line in lines if "consistency" in line]
+    assert len(pairs) == 2 and sum(pairs) >= sum(r["consistency_pairs"] for r in steps[:2])
+
 
 def test_semi_supervised_methods_need_pretrained_weights(synth_root, tmp_path, capsys):
     args = ["train", "--config", str(TINY), "--data", str(synth_root), "--out", str(tmp_path / "r")]
