@@ -269,9 +269,10 @@ class TrainConfig:
 class AugmentConfig:
     """Augmentation of labeled frames, in pre-training and in the labeled half of
     teacher-student steps (DESIGN.md section 3; the flip is [train] flip_probability, shared
-    by image and cloud). 3D only, the image and the 2D targets untouched: ground-truth
-    database sampling (objects of other labeled frames pasted into the cloud with their
-    points), then global rotation about z in +-rotation radians and global scale in scale.
+    by image and cloud). 3D only (the image and the 2D targets untouched unless
+    gt_sampling_image): ground-truth database sampling (objects of other labeled frames pasted
+    into the cloud with their points), then global rotation about z in +-rotation radians and
+    global scale in scale.
     2D only: image_scale, a random rescale of the image before it is cropped or padded to
     [data] image_size (multi-scale training; [1, 1] is off). repeat_factor_threshold: frames
     holding rare classes are drawn more often (detectron2's repeat-factor sampling; 0 is off).
@@ -281,6 +282,10 @@ class AugmentConfig:
     # Objects of each class ([data] classes order) a frame is filled up to by sampling.
     gt_sample_counts: tuple[int, ...] = (15, 10, 10)
     gt_min_points: int = 5
+    # Paste the sampled objects' image crops too (the rig is the same in every frame), so the
+    # 2D detector learns them as well; objects whose 2D box would touch another are not
+    # sampled then.
+    gt_sampling_image: bool = False
     rotation: float = 0.7853981633974483
     scale: tuple[float, float] = (0.95, 1.05)
     image_scale: tuple[float, float] = (1.0, 1.0)

@@ -18,7 +18,12 @@ import torch.nn.functional as F
 from detmatch.config import AugmentConfig
 from detmatch.constants import IMAGE_MEAN
 from detmatch.data.augment import CloudTransform, sample_cloud_transform
-from detmatch.data.gt_sampling import DatabaseObject, GroundTruthDatabase, paste_objects
+from detmatch.data.gt_sampling import (
+    DatabaseObject,
+    GroundTruthDatabase,
+    paste_crops,
+    paste_objects,
+)
 from detmatch.data.kitti import KittiDataset
 from detmatch.data.selection import FrameSelection
 from detmatch.geometry import bev_cells_in_camera_view, project_boxes_to_image
@@ -254,7 +259,7 @@ def augmented_sample(
     the cloud through `cloud` (flip, rotation, scale) after the `pasted` database objects
     replaced its points inside their boxes. projected_2d: 2D boxes are the 3D labels projected
     into the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes. Pasted
-    objects join the 3D labels only."""
+    objects join the 3D labels, and the image and 2D labels too when they carry crops."""
     gt_2d, gt_3d = LabeledBoxes.empty(4), LabeledBoxes.empty(7)
     if frame.labels is not None:
         names = [str(n) for n in frame.labels.names]
@@ -266,11 +271,25 @@ def augmented_sample(
         boxes_2d = frame.labels.boxes_2d.xyxy[keep]
         if projected_2d:
             boxes_2d = project_boxes_to_image(boxes_3d, frame.calib, frame.image_size)
-        gt_2d = image.clip(LabeledBoxes(image.apply(boxes_2d), class_ids))
+        classes_2d = class_ids
+        cropped = [o for o in pasted if o.crop is not None]
+        if cropped:
+            pasted_3d = np.stack([o.box for o in cropped])
+            pasted_2d = (
+                project_boxes_to_image(pasted_3d, frame.calib, frame.image_size)
+                if projected_2d
+                else np.stack([o.box_2d for o in cropped])
+            )
+            boxes_2d = np.concatenate([boxes_2d, pasted_2d])
+            classes_2d = np.concatenate([class_ids, [o.class_id for o in cropped]])
+        gt_2d = image.clip(LabeledBoxes(image.apply(boxes_2d), classes_2d))
         if pasted:
             boxes_3d = np.concatenate([boxes_3d, np.stack([o.box for o in pasted])])
             class_ids = np.concatenate([class_ids, [o.class_id for o in pasted]])
         gt_3d = LabeledBoxes(cloud.apply_boxes(boxes_3d), class_ids)
+    pixels = frame.image
+    if any(o.crop is not None for o in pasted):
+        pixels = paste_crops(frame.image, [o for o in pasted if o.crop is not None])
     points = paste_objects(frame.points, list(pasted))
     if not cloud.is_identity:
         points = cloud.apply_points(points)
@@ -279,7 +298,7 @@ def augmented_sample(
         calib=frame.calib,
         image_transform=image,
         cloud=cloud,
-        image=image_to_tensor(frame.image, image),
+        image=image_to_tensor(pixels, image),
         gt_2d=gt_2d,
         gt_3d=gt_3d,
         pillars=pillarize(points, grid),
@@ -368,8 +387,9 @@ class FrameDataset(torch.utils.data.Dataset):
         self.database = None
         if labeled_augment is not None and labeled_augment.gt_sampling:
             self.database = GroundTruthDatabase.build(
-                self.kitti, self.ids, self.classes, labeled_augment.gt_min_points, progress
-            )
+                self.kitti, self.ids, self.classes, labeled_augment.gt_min_points, progress,
+                with_images=labeled_augment.gt_sampling_image,
+            )  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -395,9 +415,10 @@ class FrameDataset(torch.utils.data.Dataset):
             labels = frame.labels
             keep = np.array([str(n) in self.classes for n in labels.names], dtype=bool)
             class_ids = np.array([self.classes.index(str(n)) for n in labels.names[keep]])
+            boxes_2d = labels.boxes_2d.xyxy if options.gt_sampling_image else None
             pasted = self.database.sample(
                 rng, labels.boxes_3d.data[keep], class_ids, options.gt_sample_counts,
-                frame.frame_id,
+                frame.frame_id, boxes_2d,
             )  # fmt: skip
         return augmented_sample(
             frame, self.classes, self.grid, image, cloud, self.projected_2d, pasted

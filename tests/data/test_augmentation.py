@@ -142,3 +142,29 @@ def test_learning_rate_schedules():
     assert learning_rates(train, 900)[1] == pytest.approx(0.003 / 10 / 1e4)
     rates = [learning_rates(train, s)[1] for s in range(0, 900, 10)]
     assert max(rates) == pytest.approx(0.003, rel=1e-3) and np.argmax(rates) == 36
+
+
+def test_pasting_image_crops_adds_the_objects_to_both_detectors(synth_root):
+    """With gt_sampling_image, a pasted object's crop lands at its 2D box in the image (the
+    rig is the same in every frame) and its box joins the 2D targets; no pasted 2D box touches
+    another box of the frame."""
+    plain = labeled(synth_root, gt_sampling=True, gt_sample_counts=(0, 6, 6), gt_min_points=1)
+    joint = labeled(synth_root, gt_sampling=True, gt_sample_counts=(0, 6, 6), gt_min_points=1,
+                    gt_sampling_image=True)  # fmt: skip
+    assert all(o.crop is not None for o in joint.database.objects)
+    grown = 0
+    for index in range(len(joint)):
+        sample = joint[(index, 11)]
+        frame = joint.kitti.load_frame(joint.ids[index])
+        keep = np.isin(frame.labels.names, TINY.data.classes)
+        pasted = len(sample.gt_3d) - int(keep.sum())
+        assert len(sample.gt_2d) == int(keep.sum()) + pasted
+        grown += pasted
+        if pasted:
+            new = sample.gt_2d.boxes[int(keep.sum()) :]
+            old = sample.image_transform.apply(frame.labels.boxes_2d.xyxy)
+            from detmatch.geometry import pairwise_intersection_2d
+
+            assert pairwise_intersection_2d(new, old).max() == 0
+            assert not torch.equal(sample.image, plain[(index, 11)].image)
+    assert grown > 0
