@@ -127,14 +127,16 @@ def test_metrics_count_every_request_at_the_edge(tmp_path, slot):
         with LabelingClient(f"127.0.0.1:{port}", token="wrong") as stranger:
             with pytest.raises(grpc.RpcError):
                 stranger.model_info()
-        text = (
-            urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10)
-            .read()
-            .decode()
-        )
     finally:
+        # Stopping waits for the handlers: a client can hold its status before the server
+        # has counted the call, so the metrics are read after the stop.
         background.stop()
         store.close()
+    text = (
+        urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10)
+        .read()
+        .decode()
+    )
     version = slot.version
     for code, count in (("OK", 1), ("INVALID_ARGUMENT", 2), ("RESOURCE_EXHAUSTED", 1)):
         labels = {"method": "LabelFrame", "code": code, "model_version": version}
