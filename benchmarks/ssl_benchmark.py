@@ -43,7 +43,13 @@ from detmatch.config import DEVICES, ExperimentConfig, apply_overrides, load_con
 from detmatch.data.dataset import FrameDataset, collate
 from detmatch.data.splits import dev_name, make_split, split_names
 from detmatch.eval.pseudo_labels import pseudo_label_quality
-from detmatch.geometry import boxes_touching_image, pairwise_iou_3d, project_boxes_to_image
+from detmatch.geometry import (
+    boxes_touching_image,
+    pairwise_iou_2d,
+    pairwise_iou_3d,
+    pairwise_iou_bev,
+    project_boxes_to_image,
+)
 from detmatch.inference import predict_batch
 from detmatch.matching import matching_cost
 from detmatch.models.build import build_detectors, load_detectors
@@ -162,11 +168,77 @@ def pseudo_label_sets(
     return sets
 
 
+# Figure 4: a ground-truth object counts as found by a modality when a confident (score > 0.3)
+# detection of its class overlaps it: 2D IoU >= 0.5; bird's-eye-view IoU >= these.
+FOUND_SCORE = 0.3
+FOUND_BEV_IOU = {"Car": 0.5, "Pedestrian": 0.25, "Cyclist": 0.25}
+
+
+def found_by(det_2d: Detections, det_3d: Detections, labels: Labels, classes) -> list[tuple]:
+    """(class, occlusion, found in 2D, found in 3D) of each labeled object of the classes."""
+    rows = []
+    for class_id, name in enumerate(classes):
+        objects = np.flatnonzero(labels.names == name)
+        if not len(objects):
+            continue
+        d2 = det_2d[(det_2d.classes == class_id) & (det_2d.scores > FOUND_SCORE)]
+        d3 = det_3d[(det_3d.classes == class_id) & (det_3d.scores > FOUND_SCORE)]
+        iou_2d = pairwise_iou_2d(labels.boxes_2d.xyxy[objects], d2.boxes)
+        iou_3d = pairwise_iou_bev(labels.boxes_3d.data[objects], d3.boxes)
+        bev_threshold = FOUND_BEV_IOU.get(name, 0.5)
+        for k, row in enumerate(objects):
+            in_2d = bool(len(d2)) and iou_2d[k].max() >= 0.5
+            in_3d = bool(len(d3)) and iou_3d[k].max() >= bev_threshold
+            rows.append((name, int(labels.occluded[row]), in_2d, in_3d))
+    return rows
+
+
+def complementarity(rows: list[tuple], classes) -> dict:
+    """Recall per class and occlusion level (0, 1, 2) for 2D, 3D, either and both."""
+    table: dict = {}
+    for name in classes:
+        for level in (0, 1, 2):
+            hits = [(f2, f3) for c, occ, f2, f3 in rows if c == name and occ == level]
+            if not hits:
+                continue
+            found = np.array(hits, dtype=bool)
+            table.setdefault(name, {})[str(level)] = {
+                "objects": len(hits), "2d": float(found[:, 0].mean()),
+                "3d": float(found[:, 1].mean()), "either": float(found.any(axis=1).mean()),
+                "both": float(found.all(axis=1).mean()),
+            }  # fmt: skip
+    return table
+
+
+def draw_figure4(table: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(table)
+    figure, axes = plt.subplots(1, len(names), figsize=(4 * len(names), 3.6), dpi=110)
+    for axis, name in zip(np.atleast_1d(axes), names, strict=True):
+        levels = sorted(table[name], key=int)
+        x = np.arange(len(levels))
+        for offset, key, colour in ((-0.2, "2d", "tab:blue"), (0.2, "3d", "tab:orange")):
+            axis.bar(x + offset, [table[name][lv][key] for lv in levels], 0.4, label=key.upper(),
+                     color=colour)  # fmt: skip
+        axis.plot(x, [table[name][lv]["either"] for lv in levels], "k.--", label="either")
+        axis.set_xticks(x, [f"occl. {lv}\n({table[name][lv]['objects']})" for lv in levels])
+        axis.set_ylim(0, 1)
+        axis.set_title(f"{name}: recall of confident detections")
+        axis.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(out)
+
+
 def analyse_teacher(
     checkpoint: Path, config: ExperimentConfig, max_frames: int
-) -> tuple[dict, np.ndarray]:
-    """Pseudo-label quality of the pre-trained teacher under both rules, and Figure 3's points:
-    rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections."""
+) -> tuple[dict, np.ndarray, dict]:
+    """Pseudo-label quality of the pre-trained teacher under both rules; Figure 3's points:
+    rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections; and
+    Figure 4's table: 2D and 3D recall per class and occlusion level."""
     loaded = load_detectors(checkpoint)
     model_2d, model_3d = loaded.model_2d, loaded.model_3d
     data = config.data
@@ -181,13 +253,14 @@ def analyse_teacher(
         num_workers=data.num_workers,
     )
     pseudo: dict[str, list[Labels]] = {"confidence": [], "detmatch": []}
-    ground_truth, points = [], []
+    ground_truth, points, found = [], [], []
     for batch in loader:
         for sample, (det_2d, det_3d) in zip(
             batch.samples, predict_batch(model_2d, model_3d, batch), strict=True
         ):
             labels = dataset.kitti.load_frame(sample.frame_id).labels
             ground_truth.append(labels)
+            found += found_by(det_2d, det_3d, labels, data.classes)
             for method, rows in pseudo_label_sets(
                 det_2d, det_3d, sample, data.classes, config
             ).items():
@@ -209,7 +282,8 @@ def analyse_teacher(
         method: pseudo_label_quality(rows, ground_truth, data.classes, IOU_3D, IOU_2D)
         for method, rows in pseudo.items()
     }
-    return quality, np.concatenate(points) if points else np.zeros((0, 3))
+    points = np.concatenate(points) if points else np.zeros((0, 3))
+    return quality, points, complementarity(found, data.classes)
 
 
 def draw_figure(points: np.ndarray, out: Path) -> dict[str, float]:
@@ -348,8 +422,10 @@ def main() -> None:
         )  # fmt: skip
         for split, name in scored.items()
     }
-    quality, points = analyse_teacher(out / "pretrain", base, args.analysis_frames)
+    quality, points, recall = analyse_teacher(out / "pretrain", base, args.analysis_frames)
     correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
+    if recall:
+        draw_figure4(recall, out / "figure4.png")
     timings["report"] = time.perf_counter() - started
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
@@ -379,6 +455,15 @@ def main() -> None:
                 cells += [f"{f1:.3f}", str(q["num_pseudo"]), str(q["num_gt"])]
                 lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"Figure 3: figure3.png ({len(points)} 3D teacher boxes), Spearman {correlation}"]
+    lines += ["", "## Figure 4: recall of the pre-trained detectors by occlusion (figure4.png)", ""]
+    lines += [
+        "| class | occlusion | objects | 2D | 3D | either | both |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, levels in recall.items():
+        for level, r in levels.items():
+            lines.append(f"| {name} | {level} | {r['objects']} | {r['2d']:.2f} | {r['3d']:.2f} | "
+                         f"{r['either']:.2f} | {r['both']:.2f} |")  # fmt: skip
     lines += ["", f"Wall seconds: {json.dumps({k: round(v) for k, v in timings.items()})}"]
     lines += ["", "rerun: python " + " ".join(sys.argv)]
     report = "\n".join(lines) + "\n"
@@ -391,6 +476,7 @@ def main() -> None:
         "learning_curve": curve,
         "pseudo_label_quality": quality,
         "figure3": correlation,
+        "figure4": recall,
         "train_wall_s": timings,
         "command": " ".join(sys.argv),
     }
