@@ -192,6 +192,10 @@ class Detector3DConfig:
     score_threshold: float = SCORE_THRESHOLD
     heatmap_weight: float = 1.0
     regression_weight: float = 0.25
+    # A light second stage (detmatch.models.refine): detached boxes refined from detached BEV
+    # features; the consistency loss then trains it instead of the dense box regression.
+    refine: bool = False
+    refine_weight: float = 1.0
 
     SECTION: ClassVar[str] = "detector3d"
 
@@ -201,7 +205,7 @@ class Detector3DConfig:
         check.finite("point_cloud_range")
         check.positive("pillar_size", "max_points_per_pillar", "max_pillars", "pillar_channels")
         check.positive("widths", "head_width", "out_stride", "max_detections")
-        check.non_negative("depths", "heatmap_weight", "regression_weight")
+        check.non_negative("depths", "heatmap_weight", "regression_weight", "refine_weight")
         if not self.widths:
             check.fail("widths", "at least one stage width")
         if len(self.depths) != len(self.widths):

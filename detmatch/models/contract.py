@@ -17,10 +17,11 @@ classes). A detector is an `nn.Module` that implements:
   pseudo-label loss); normalizer overrides the object count the classification loss is
   averaged over.
 - 3D only: `consistency_candidates(outputs) -> ConsistencyCandidates`, the differentiable
-  decode the 2D-teacher -> 3D-student consistency loss pulls on, and the class attribute
+  decode the 2D-teacher -> 3D-student consistency loss pulls on, and the attribute
   `consistency_gradient`, which says where that loss's box gradient goes. A detector with a
   second stage should return the refined boxes there, so the dense box regression is not
-  pulled by the 2D teacher (the authors' PV-RCNN trains only its RoI head this way).
+  pulled by the 2D teacher (the authors' PV-RCNN trains only its RoI head this way;
+  `PointPillars3D` with `[detector3d] refine` does the same).
 
 `detect(outputs)` turns decoded outputs into per-frame `Detections` above the detector's score
 threshold, still in the input frame; `detmatch.inference` maps them back to the un-augmented
@@ -32,7 +33,7 @@ from __future__ import annotations
 import abc
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -74,8 +75,9 @@ class Detector2D(nn.Module, abc.ABC):
 
     num_classes: int
     score_threshold: float
-    # Names of forward's outputs, in order (the exported graph's raw outputs).
-    output_names: ClassVar[tuple[str, ...]]
+    # Names of forward's outputs, in order (the exported graph's raw outputs): a class or an
+    # instance attribute.
+    output_names: tuple[str, ...]
 
     @abc.abstractmethod
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]: ...
@@ -132,9 +134,9 @@ class Detector3D(nn.Module, abc.ABC):
     num_classes: int
     score_threshold: float
     grid: PillarGrid
-    output_names: ClassVar[tuple[str, ...]]
+    output_names: tuple[str, ...]
     # Where the consistency loss's box gradient goes, in words (logged and documented).
-    consistency_gradient: ClassVar[str]
+    consistency_gradient: str
 
     @abc.abstractmethod
     def forward(

@@ -31,6 +31,7 @@ from detmatch.models.common import (
 )
 from detmatch.models.contract import ConsistencyCandidates, Decoded, Detector3D, LabelledArea
 from detmatch.models.pillars import PILLAR_FEATURES, PillarGrid
+from detmatch.models.refine import BoxRefinement, nearest_labels, residual_targets
 from detmatch.structures import LabeledBoxes
 
 # Regression channels: x, y offsets in the cell, z, log l, log w, log h, sin yaw, cos yaw.
@@ -110,19 +111,19 @@ class PillarFeatureNet(nn.Module):
 class CenterPointTargets:
     """One frame's targets on the output grid (h, w): heatmap (C, h, w) of Gaussian peaks;
     labelled_area (1, h, w) 1 where background is learned; per object the flat cell index
-    (N,) and regression (N, 8): x, y offsets in the cell, z, log l, log w, log h, sin, cos yaw."""
+    (N,) and regression (N, 8): x, y offsets in the cell, z, log l, log w, log h, sin, cos yaw;
+    boxes (N, 7) the labels themselves (the second stage's targets)."""
 
     heatmap: np.ndarray
     labelled_area: np.ndarray
     index: np.ndarray
     regression: np.ndarray
+    boxes: np.ndarray
 
 
 class PointPillars3D(Detector3D):
-    """Pillar encoder -> BEV pseudo-image -> multi-scale backbone -> CenterPoint heads."""
-
-    consistency_gradient = "the dense head's box regression (single-stage detector)"
-    output_names = ("heatmap", "regression")
+    """Pillar encoder -> BEV pseudo-image -> multi-scale backbone -> CenterPoint heads, and with
+    [detector3d] refine a light second stage (detmatch.models.refine)."""
 
     def __init__(self, config: Detector3DConfig, num_classes: int) -> None:
         super().__init__()
@@ -164,6 +165,14 @@ class PointPillars3D(Detector3D):
             config.head_width, config.head_width, num_classes, HEATMAP_PRIOR_BIAS
         )
         self.regression_head = head(config.head_width, config.head_width, REGRESSION_CHANNELS)
+        self.output_names = ("heatmap", "regression")
+        self.consistency_gradient = "the dense head's box regression (single-stage detector)"
+        self.refinement = None
+        if config.refine:
+            origin = (config.point_cloud_range[0], config.point_cloud_range[1])
+            self.refinement = BoxRefinement(config.head_width, origin, self.cell_size)
+            self.output_names = ("heatmap", "regression", "bev_features")
+            self.consistency_gradient = "the second stage's box refinement only"
 
     @property
     def output_shape(self) -> tuple[int, int]:
@@ -184,10 +193,11 @@ class PointPillars3D(Detector3D):
         coords: torch.Tensor,
         counts: torch.Tensor,
         batch_size: int = 1,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, ...]:
         """features (P, M, 9), coords (P, 3) int64 (batch, iy, ix), counts (P,).
 
-        Returns heatmap logits (B, C, h, w) and regression (B, 8, h, w) on the output grid.
+        Returns heatmap logits (B, C, h, w) and regression (B, 8, h, w) on the output grid, and
+        with refine the shared BEV features (B, head_width, h, w) the second stage samples.
         """
         ny, nx = self.grid.shape
         encoded = self.encoder(features, counts)
@@ -207,27 +217,34 @@ class PointPillars3D(Detector3D):
                     lifted = F.adaptive_avg_pool2d(lifted, (out_h, out_w))
             merged = lifted if merged is None else merged + lifted
         shared = self.neck(merged)
-        return self.heatmap_head(shared), self.regression_head(shared)
+        maps = (self.heatmap_head(shared), self.regression_head(shared))
+        return (*maps, shared) if self.refinement is not None else maps
 
     def decode(self, outputs: Sequence[torch.Tensor]) -> Decoded:
         """Head maps -> boxes (B, K, 7) LiDAR x y z l w h yaw, scores (B, K), classes (B, K),
         probabilities (B, K, C). Differentiable in the gathered values."""
-        heatmap, regression = outputs
+        heatmap, regression = outputs[:2]
         width = heatmap.shape[3]
         scores, classes, pixel, probabilities = heatmap_peaks(
             torch.sigmoid(heatmap), self.config.max_detections
         )
-        values = gather_at(regression, pixel)
-        return self.boxes_from_regression(pixel, values, width), scores, classes, probabilities
+        boxes = self.boxes_from_regression(pixel, gather_at(regression, pixel), width)
+        if self.refinement is not None:
+            boxes = self.refinement(outputs[2], boxes)
+        return boxes, scores, classes, probabilities
 
     def consistency_candidates(self, outputs: Sequence[torch.Tensor]) -> ConsistencyCandidates:
-        """The top-k peaks of the detached heatmap; their class logits and the boxes decoded
-        from the dense regression keep their gradients."""
-        heatmap, regression = outputs
+        """The top-k peaks of the detached heatmap with their class logits (which keep their
+        gradients) and boxes: decoded from the dense regression (its gradient kept), or with
+        refine the second stage's refinement of the detached dense boxes (only the refinement
+        keeps a gradient)."""
+        heatmap, regression = outputs[:2]
         scores, _, pixel, probabilities = heatmap_peaks(
             torch.sigmoid(heatmap).detach(), self.config.max_detections
         )
         boxes = self.boxes_from_regression(pixel, gather_at(regression, pixel), heatmap.shape[3])
+        if self.refinement is not None:
+            boxes = self.refinement(outputs[2], boxes)
         return ConsistencyCandidates(boxes, gather_at(heatmap, pixel), scores, probabilities)
 
     def boxes_from_regression(
@@ -286,6 +303,7 @@ class PointPillars3D(Detector3D):
             labelled_area=labelled_area[None].astype(np.float32),
             index=np.asarray(index, dtype=np.int64),
             regression=np.asarray(regression, dtype=np.float32).reshape(-1, REGRESSION_CHANNELS),
+            boxes=np.asarray(labels.boxes, dtype=np.float64).reshape(-1, 7),
         )
 
     def loss(
@@ -296,7 +314,7 @@ class PointPillars3D(Detector3D):
         normalizer: float | None = None,
     ) -> dict[str, torch.Tensor]:
         """Focal heatmap loss and L1 regression at object centres (averaged over objects)."""
-        heatmap, regression = outputs
+        heatmap, regression = outputs[:2]
         target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)
         area = tensor_like(np.stack([t.labelled_area for t in targets]), heatmap)
         focal = heatmap_focal_loss(heatmap, target_heatmap, area, normalizer)
@@ -317,4 +335,33 @@ class PointPillars3D(Detector3D):
             count = max(sum(len(t.index) for t in targets), 1)
             total = sum(terms, regression.sum() * 0.0) / count
             losses["regression"] = self.config.regression_weight * total
+            if self.refinement is not None:
+                losses["refine"] = self.config.refine_weight * self.refine_loss(outputs, targets)
         return losses
+
+    def refine_loss(
+        self, outputs: Sequence[torch.Tensor], targets: Sequence[CenterPointTargets]
+    ) -> torch.Tensor:
+        """Smooth L1 of the second stage's residuals, for the detached top-k boxes whose
+        nearest labeled box is close (detmatch.models.refine.nearest_labels), averaged over
+        them."""
+        heatmap, regression, features = outputs
+        with torch.no_grad():
+            _, _, pixel, _ = heatmap_peaks(torch.sigmoid(heatmap), self.config.max_detections)
+            rois = self.boxes_from_regression(pixel, gather_at(regression, pixel), heatmap.shape[3])
+        residual = self.refinement.residual(features, rois)
+        terms = []
+        for b, target in enumerate(targets):
+            frame_rois = rois[b].detach().cpu().double().numpy()
+            rows = nearest_labels(frame_rois, target.boxes)
+            chosen = np.flatnonzero(rows >= 0)
+            if len(chosen):
+                wanted = residual_targets(frame_rois[chosen], target.boxes[rows[chosen]])
+                index = tensor_like(chosen, residual)
+                terms.append(
+                    F.smooth_l1_loss(residual[b][index], tensor_like(wanted, residual),
+                                     beta=1 / 9, reduction="none").sum(dim=1)
+                )  # fmt: skip
+        if not terms:
+            return residual.sum() * 0.0
+        return torch.cat(terms).mean()
