@@ -193,6 +193,8 @@ class SupervisedTrainer:
         self.device = context.device
         self.autocast_dtype = autocast_dtype(config.train.precision, self.device)
         model_2d, model_3d = (model.to(self.device) for model in build_detectors(config))
+        # The 2D detector's convolutions run ~1.3x faster on channels-last tensors (oneDNN).
+        model_2d.to(memory_format=torch.channels_last)
         optimizer_2d, optimizer_3d = build_optimizers(config, model_2d, model_3d)
         self.state = TrainState(model_2d, model_3d, optimizer_2d, optimizer_3d)
         self.forward_2d: torch.nn.Module = model_2d
@@ -237,6 +239,7 @@ class SupervisedTrainer:
     def run_2d(self, images: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The trained 2D detector's raw outputs (through DDP, in the configured precision),
         in fp32."""
+        images = images.contiguous(memory_format=torch.channels_last)
         with autocast(self.device, self.autocast_dtype):
             return fp32(self.forward_2d(images))
 
