@@ -71,6 +71,10 @@ METHODS = {
     },
     "detmatch-class-consistency": {"method": "detmatch", "consistency_box": False},
     "detmatch-box-consistency": {"method": "detmatch", "consistency_class": False},
+    # The authors' normalisations: per-frame consistency means, NMS on the student's candidates.
+    "detmatch-frames-nms": {
+        "method": "detmatch", "consistency_reduction": "frames", "consistency_nms": True,
+    },
 }  # fmt: skip
 BASELINES = ("labeled-only", "control")
 
