@@ -71,7 +71,7 @@ SIZES = {
                  about="about 10 minutes on 2 CPU cores, the default"),
         DemoSize("medium", 600, 60, 1500, 600, 300, labeled_fraction=0.1,
                  about="about an hour on 8 CPU cores, minutes on a GPU"),
-        DemoSize("large", 2000, 200, 800, 600, 300, config="ssl_cpu", labeled_fraction=0.05,
+        DemoSize("large", 2000, 200, 3000, 600, 300, config="ssl_cpu", labeled_fraction=0.05,
                  about="the benchmark's set-up, BENCHMARKS.md: a GPU"),
     )
 }  # fmt: skip
