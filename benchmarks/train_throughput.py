@@ -137,8 +137,8 @@ def main() -> None:
     print(f"config {args.config}; batch {args.batch}; torch threads {torch.get_num_threads()}; "
           f"{len(pillars)} pillars, {int(pillars.counts.sum())} points in the batch; "
           f"{args.rounds} rounds of {args.iters} steps, medians")  # fmt: skip
-    print("before: fp32, pillar encoder on the padded layout; "
-          f"after: precision {precision!r}, 2D channels-last, pillar encoder on real points")  # fmt: skip
+    print("before: fp32, pillar encoder on the padded layout; after: precision "
+          f"{precision!r}, 2D channels-last, pillar encoder on real points")  # fmt: skip
     print("| model | parameters | forward GFLOPs/frame | before frames/s | after frames/s | "
           "speed-up |")  # fmt: skip
     print("|---|---|---|---|---|---|")
