@@ -63,8 +63,14 @@ def broadcast_buffers(module: torch.nn.Module, context: DistributedContext) -> N
 
 
 def shutdown_distributed() -> None:
+    """Leave the process group together: a barrier first, so that no rank tears down its
+    connections while another still finishes (a gloo rank can then abort at exit with
+    "terminate called without an active exception")."""
     if dist.is_initialized():
-        dist.destroy_process_group()
+        try:
+            dist.barrier()
+        finally:
+            dist.destroy_process_group()
 
 
 def barrier(context: DistributedContext) -> None:
