@@ -69,9 +69,9 @@ def _detections(decoded: Decoded, threshold: float) -> list[Detections]:
     return frames
 
 
-class Detector2D(nn.Module, abc.ABC):
-    """A camera detector. Images are (B, 3, H, W) float RGB in [0, 255] (H, W multiples of
-    the detector's stride); boxes are xyxy pixels of that input."""
+class Detector(nn.Module, abc.ABC):
+    """What both modalities' detectors share: raw outputs -> decoded boxes, a loss against
+    built targets, and per-frame detections. Boxes are in the detector's input coordinates."""
 
     num_classes: int
     score_threshold: float
@@ -80,14 +80,7 @@ class Detector2D(nn.Module, abc.ABC):
     output_names: tuple[str, ...]
 
     @abc.abstractmethod
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]: ...
-
-    @abc.abstractmethod
     def decode(self, outputs: Sequence[torch.Tensor]) -> Decoded: ...
-
-    @abc.abstractmethod
-    def build_targets(self, labels: LabeledBoxes, input_size: tuple[int, int]) -> Any:
-        """labels: boxes in input pixels; input_size: (W, H) of the network input."""
 
     @abc.abstractmethod
     def loss(
@@ -102,8 +95,20 @@ class Detector2D(nn.Module, abc.ABC):
         not inflate the background's weight)."""
 
     def detect(self, outputs: Sequence[torch.Tensor]) -> list[Detections]:
-        """Per-frame detections above the score threshold, boxes in input pixels."""
+        """Per-frame detections above the score threshold, boxes in the input's coordinates."""
         return _detections(self.decode(outputs), self.score_threshold)
+
+
+class Detector2D(Detector):
+    """A camera detector. Images are (B, 3, H, W) float RGB in [0, 255] (H, W multiples of
+    the detector's stride); boxes are xyxy pixels of that input."""
+
+    @abc.abstractmethod
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]: ...
+
+    @abc.abstractmethod
+    def build_targets(self, labels: LabeledBoxes, input_size: tuple[int, int]) -> Any:
+        """labels: boxes in input pixels; input_size: (W, H) of the network input."""
 
 
 class LabelledArea(Protocol):
@@ -127,14 +132,11 @@ class ConsistencyCandidates:
     probabilities: torch.Tensor
 
 
-class Detector3D(nn.Module, abc.ABC):
+class Detector3D(Detector):
     """A LiDAR detector on pillars (`detmatch.models.pillars`); boxes are LiDAR-frame
     x, y, z, l, w, h, yaw in the input's (augmented) frame."""
 
-    num_classes: int
-    score_threshold: float
     grid: PillarGrid
-    output_names: tuple[str, ...]
     # Where the consistency loss's box gradient goes, in words (logged and documented).
     consistency_gradient: str
 
@@ -149,31 +151,12 @@ class Detector3D(nn.Module, abc.ABC):
         """features (P, M, 9), coords (P, 3) (frame, iy, ix), counts (P,): a batch's pillars."""
 
     @abc.abstractmethod
-    def decode(self, outputs: Sequence[torch.Tensor]) -> Decoded: ...
-
-    @abc.abstractmethod
     def build_targets(self, labels: LabeledBoxes, view: LabelledArea | None = None) -> Any:
         """labels: boxes in the input frame; view: where background may be learned (None:
         everywhere)."""
 
     @abc.abstractmethod
-    def loss(
-        self,
-        outputs: Sequence[torch.Tensor],
-        targets: Sequence[Any],
-        box_regression: bool = True,
-        normalizer: float | None = None,
-    ) -> dict[str, torch.Tensor]:
-        """normalizer: the object count the classification loss is averaged over (None: the
-        targets' own; pseudo-labels may use the labeled batch's, so that few pseudo-labels do
-        not inflate the background's weight)."""
-
-    @abc.abstractmethod
     def consistency_candidates(self, outputs: Sequence[torch.Tensor]) -> ConsistencyCandidates: ...
-
-    def detect(self, outputs: Sequence[torch.Tensor]) -> list[Detections]:
-        """Per-frame detections above the score threshold, boxes in the input frame."""
-        return _detections(self.decode(outputs), self.score_threshold)
 
 
 def forward_pillars(module: nn.Module, pillars: Pillars) -> tuple[torch.Tensor, ...]:
