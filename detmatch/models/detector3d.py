@@ -224,11 +224,7 @@ class PointPillars3D(Detector3D):
         """Head maps -> boxes (B, K, 7) LiDAR x y z l w h yaw, scores (B, K), classes (B, K),
         probabilities (B, K, C). Differentiable in the gathered values."""
         heatmap, regression = outputs[:2]
-        width = heatmap.shape[3]
-        scores, classes, pixel, probabilities = heatmap_peaks(
-            torch.sigmoid(heatmap), self.config.max_detections
-        )
-        boxes = self.boxes_from_regression(pixel, gather_at(regression, pixel), width)
+        scores, classes, _, probabilities, boxes = self._peaks(torch.sigmoid(heatmap), regression)
         if self.refinement is not None:
             boxes = self.refinement(outputs[2], boxes)
         return boxes, scores, classes, probabilities
@@ -239,13 +235,24 @@ class PointPillars3D(Detector3D):
         refine the second stage's refinement of the detached dense boxes (only the refinement
         keeps a gradient)."""
         heatmap, regression = outputs[:2]
-        scores, _, pixel, probabilities = heatmap_peaks(
-            torch.sigmoid(heatmap).detach(), self.config.max_detections
+        scores, _, pixel, probabilities, boxes = self._peaks(
+            torch.sigmoid(heatmap).detach(), regression
         )
-        boxes = self.boxes_from_regression(pixel, gather_at(regression, pixel), heatmap.shape[3])
         if self.refinement is not None:
             boxes = self.refinement(outputs[2], boxes)
         return ConsistencyCandidates(boxes, gather_at(heatmap, pixel), scores, probabilities)
+
+    def _peaks(
+        self, heatmap_probabilities: torch.Tensor, regression: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
+        """The top-k peaks of heatmap probabilities (B, C, h, w): scores, classes, pixels,
+        probabilities, and the dense head's boxes (B, K, 7) decoded at them."""
+        scores, classes, pixel, probabilities = heatmap_peaks(
+            heatmap_probabilities, self.config.max_detections
+        )
+        width = heatmap_probabilities.shape[3]
+        boxes = self.boxes_from_regression(pixel, gather_at(regression, pixel), width)
+        return scores, classes, pixel, probabilities, boxes
 
     def boxes_from_regression(
         self, pixel: torch.Tensor, values: torch.Tensor, width: int
@@ -347,8 +354,7 @@ class PointPillars3D(Detector3D):
         them."""
         heatmap, regression, features = outputs
         with torch.no_grad():
-            _, _, pixel, _ = heatmap_peaks(torch.sigmoid(heatmap), self.config.max_detections)
-            rois = self.boxes_from_regression(pixel, gather_at(regression, pixel), heatmap.shape[3])
+            rois = self._peaks(torch.sigmoid(heatmap), regression)[4]
         residual = self.refinement.residual(features, rois)
         terms = []
         for b, target in enumerate(targets):
