@@ -261,6 +261,7 @@ def augmented_sample(
     into the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes. Pasted
     objects join the 3D labels, and the image and 2D labels too when they carry crops."""
     gt_2d, gt_3d = LabeledBoxes.empty(4), LabeledBoxes.empty(7)
+    cropped = [o for o in pasted if o.crop is not None]
     if frame.labels is not None:
         names = [str(n) for n in frame.labels.names]
         keep = np.array([n in classes for n in names], dtype=bool)
@@ -272,7 +273,6 @@ def augmented_sample(
         if projected_2d:
             boxes_2d = project_boxes_to_image(boxes_3d, frame.calib, frame.image_size)
         classes_2d = class_ids
-        cropped = [o for o in pasted if o.crop is not None]
         if cropped:
             pasted_3d = np.stack([o.box for o in cropped])
             pasted_2d = (
@@ -287,9 +287,7 @@ def augmented_sample(
             boxes_3d = np.concatenate([boxes_3d, np.stack([o.box for o in pasted])])
             class_ids = np.concatenate([class_ids, [o.class_id for o in pasted]])
         gt_3d = LabeledBoxes(cloud.apply_boxes(boxes_3d), class_ids)
-    pixels = frame.image
-    if any(o.crop is not None for o in pasted):
-        pixels = paste_crops(frame.image, [o for o in pasted if o.crop is not None])
+    pixels = paste_crops(frame.image, cropped) if cropped else frame.image
     points = paste_objects(frame.points, list(pasted))
     if not cloud.is_identity:
         points = cloud.apply_points(points)
