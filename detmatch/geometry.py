@@ -442,3 +442,14 @@ def greedy_nms(iou: np.ndarray, scores: np.ndarray, threshold: float) -> np.ndar
         if not kept or iou[i, kept].max() <= threshold:
             kept.append(int(i))
     return np.asarray(kept, dtype=np.int64)
+
+
+def nearest_in_bev(boxes: np.ndarray, others: np.ndarray, max_distance: float) -> np.ndarray:
+    """(N,) row of the box of others (M, 7+) whose bird's-eye-view centre is nearest each box
+    of boxes (N, 7+), when closer than max_distance metres; else -1."""
+    if len(others) == 0 or len(boxes) == 0:
+        return np.full(len(boxes), -1, dtype=np.int64)
+    distance = np.linalg.norm(boxes[:, None, :2] - others[None, :, :2], axis=2)
+    nearest = distance.argmin(axis=1)
+    close = distance[np.arange(len(boxes)), nearest] < max_distance
+    return np.where(close, nearest, -1)

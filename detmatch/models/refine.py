@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from detmatch.geometry import nearest_in_bev
+
 # Residual channels: dx, dy (box frame, over the box's BEV diagonal), dz (over h), log l, log w,
 # log h ratios, d yaw.
 RESIDUAL_CHANNELS = 7
@@ -59,12 +61,7 @@ def residual_targets(rois: np.ndarray, truth: np.ndarray) -> np.ndarray:
 def nearest_labels(rois: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(N,) row of the labeled box (M, 7) whose BEV centre is nearest each first-stage box and
     within MATCH_DISTANCE, else -1."""
-    if len(truth) == 0 or len(rois) == 0:
-        return np.full(len(rois), -1, dtype=np.int64)
-    distance = np.linalg.norm(rois[:, None, :2] - truth[None, :, :2], axis=2)
-    nearest = distance.argmin(axis=1)
-    close = distance[np.arange(len(rois)), nearest] < MATCH_DISTANCE
-    return np.where(close, nearest, -1)
+    return nearest_in_bev(rois, truth, MATCH_DISTANCE)
 
 
 class BoxRefinement(nn.Module):

@@ -10,6 +10,7 @@ import torch
 from detmatch.data.dataset import FrameDataset, collate
 from detmatch.data.kitti import objects_to_labels
 from detmatch.eval.kitti import evaluate
+from detmatch.geometry import nearest_in_bev
 from detmatch.inference import detections_2d_to_objects, detections_3d_to_objects, predict_batch
 from detmatch.models.contract import Detector2D, Detector3D
 from detmatch.structures import Detections
@@ -88,9 +89,8 @@ def signed_box_errors(detections: Detections, boxes: np.ndarray) -> np.ndarray:
     confident = detections[detections.scores > ERROR_MIN_SCORE]
     if len(confident) == 0 or len(boxes) == 0:
         return np.zeros((0, 4))
-    distance = np.linalg.norm(confident.boxes[:, None, :2] - boxes[None, :, :2], axis=2)
-    nearest = distance.argmin(axis=1)
-    close = distance[np.arange(len(confident)), nearest] < ERROR_MATCH_DISTANCE
+    nearest = nearest_in_bev(confident.boxes, boxes, ERROR_MATCH_DISTANCE)
+    close = nearest >= 0
     predicted, true = confident.boxes[close], boxes[nearest[close]]
     columns = [3, 4, 5, 2]  # l, w, h, z
     return predicted[:, columns] - true[:, columns]
