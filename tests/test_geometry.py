@@ -240,6 +240,35 @@ def test_points_in_boxes_rotated():
     assert points_in_boxes(points, box)[0].tolist() == [True, False, True, False]
 
 
+def dense_points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """The definition: every point's offset rotated into every box's frame."""
+    offset = points[None, :, :3].astype(np.float64) - boxes[:, None, :3]
+    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
+    local = (offset[..., 0] * c + offset[..., 1] * s, -offset[..., 0] * s + offset[..., 1] * c)
+    half = boxes[:, None, 3:6] / 2
+    return (
+        (np.abs(local[0]) <= half[..., 0])
+        & (np.abs(local[1]) <= half[..., 1])
+        & (np.abs(offset[..., 2]) <= half[..., 2])
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(boxes_3d(), min_size=0, max_size=12), st.integers(0, 2**31 - 1))
+def test_points_in_boxes_agrees_with_the_dense_definition(boxes, seed):
+    """The x-strip search finds exactly the points the all-pairs test does, corners and
+    points just outside included."""
+    boxes = np.array(boxes, dtype=np.float64).reshape(-1, 7)
+    rng = np.random.default_rng(seed)
+    points = rng.uniform([-55, -55, -6, 0], [55, 55, 6, 1], (3000, 4)).astype(np.float32)
+    corners = box3d_corners(boxes).reshape(-1, 3) if len(boxes) else np.zeros((0, 3))
+    edges = np.concatenate([corners, corners * (1 + 1e-7), boxes[:, :3]])
+    points = np.concatenate([points, np.pad(edges, ((0, 0), (0, 1))).astype(np.float32)])
+    inside = points_in_boxes(points, boxes)
+    assert inside.shape == (len(boxes), len(points)) and inside.dtype == bool
+    assert np.array_equal(inside, dense_points_in_boxes(points, boxes))
+
+
 def test_serving_geometry_imports_no_torch():
     code = (
         "import sys; sys.modules['torch'] = None\n"
