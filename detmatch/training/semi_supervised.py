@@ -131,6 +131,10 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             nms=ssl.consistency_nms,
         )
 
+    @property
+    def data_workers(self) -> int:
+        return 2 * self.config.data.num_workers  # the labeled and the unlabeled loader
+
     def batches(self) -> Iterator[tuple[Batch, UnlabeledBatch]]:
         labeled = super().batches()
         unlabeled = iter(

@@ -17,7 +17,7 @@ from detmatch.data.kitti import KittiDataset, read_objects
 from detmatch.geometry import pairwise_iou_2d
 from detmatch.models.build import load_detectors
 from detmatch.training.distributed import StepSampler, init_distributed
-from detmatch.training.trainer import SupervisedTrainer
+from detmatch.training.trainer import SupervisedTrainer, leave_cores_for_workers
 from tests.conftest import REPO
 
 TINY = REPO / "configs" / "tiny.toml"
@@ -165,6 +165,37 @@ def test_killed_run_resumes_to_the_same_weights(synth_root, tmp_path):
     for key in ("model_2d", "model_3d"):
         assert_same_weights(whole[key], resumed[key])
     assert whole["optimizer_3d"]["state"].keys() == resumed["optimizer_3d"]["state"].keys()
+
+
+def test_a_cpu_run_leaves_a_core_per_data_worker_and_restores_its_threads(
+    synth_root, tmp_path, monkeypatch
+):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    context = init_distributed("cpu")
+    cores = len(os.sched_getaffinity(0))
+    before = torch.get_num_threads()
+    try:
+        assert leave_cores_for_workers(0, context) == before == torch.get_num_threads()
+        assert leave_cores_for_workers(1, context) == max(1, cores - 1) == torch.get_num_threads()
+        assert leave_cores_for_workers(cores + 3, context) == 1 == torch.get_num_threads()
+        torch.set_num_threads(before)
+        monkeypatch.setenv("OMP_NUM_THREADS", str(before))
+        assert leave_cores_for_workers(1, context) == before == torch.get_num_threads()
+        monkeypatch.delenv("OMP_NUM_THREADS")
+
+        config = load_config(write_config(tmp_path / "c.toml", "")).replace(
+            "data", root=str(synth_root), num_workers=1
+        )
+        config = config.replace("train", steps=2, eval_every=1000, checkpoint_every=1000)
+        trainer = SupervisedTrainer(config, tmp_path / "run", context)
+        seen = []
+        step = trainer.train_step
+        trainer.train_step = lambda batch: seen.append(torch.get_num_threads()) or step(batch)
+        trainer.run()
+        assert seen == [max(1, cores - 1)] * 2
+        assert torch.get_num_threads() == before
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_two_process_torchrun_keeps_ranks_identical(synth_root, tmp_path):
