@@ -3,6 +3,10 @@
     detmatch synth --out data/synth2k --frames 2000 --seed 0 --workers 2
     python benchmarks/supervised_accuracy.py --config configs/synth_cpu.toml --data data/synth2k \
         --out runs/supervised_cpu
+    # the ceiling of the semi-supervised benchmark: its pre-training recipe on every train label
+    python benchmarks/supervised_accuracy.py --config configs/ssl_cpu.toml --data data/synth2k \
+        --out runs/ceiling --set data.train_split=train --set data.val_split=val \
+        --set train.eval_every=3000
 
 Trains with every train-split label (the config's [train] steps), then evaluates the final
 model on the val split with the project's KITTI evaluator: moderate R40 AP per class, 2D
@@ -19,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from detmatch.config import load_config
+from detmatch.config import apply_overrides, load_config
 from detmatch.training.distributed import init_distributed
 from detmatch.training.trainer import SupervisedTrainer
 
@@ -38,9 +42,11 @@ def main() -> None:
     parser.add_argument("--data", required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="config override (repeatable)")  # fmt: skip
     args = parser.parse_args()
 
-    config = load_config(args.config).replace("data", root=args.data)
+    config = apply_overrides(load_config(args.config), args.set).replace("data", root=args.data)
     trainer = SupervisedTrainer(config, Path(args.out), init_distributed())
     if args.resume:
         trainer.resume()
