@@ -8,14 +8,15 @@ is the same in every frame, so an object pasted where it was recorded can be pas
 image at its 2D box as well, and both detectors see it (the 2D targets gain it then).
 
 A frame is filled up to a per-class count: candidates are drawn at random, a candidate whose
-bird's-eye-view box overlaps an existing or an accepted box is dropped (with images, also one
-whose 2D box touches another), the frame's own points inside the accepted boxes are removed and
-the objects' points added. Without images the pasted objects join the 3D targets only: the
-image and the 2D targets are untouched.
+bird's-eye-view box overlaps an existing or an accepted box is dropped, the frame's own points
+inside the accepted boxes are removed and the objects' points added. Without images the pasted
+objects join the 3D targets only: the image and the 2D targets are untouched. With images, an
+object whose 2D box would touch another is pasted into the cloud only, without its crop.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,7 +107,9 @@ class GroundTruthDatabase:
         counts[c] objects in all, from other frames, none overlapping in bird's-eye view.
         boxes_2d (M, 4), when the objects' image crops are pasted too: every 2D box of the
         frame (its DontCare regions included); a candidate whose 2D box touches one of them
-        or an accepted one is dropped as well (no paste hides or cuts another object)."""
+        or an accepted crop keeps no crop (no paste hides or cuts another object) and is
+        pasted into the cloud only, so the 3D detector gets the same objects with images or
+        without (dropping them cost seed 1 5 dev 3D mAP, BENCHMARKS.md)."""
         accepted: list[DatabaseObject] = []
         occupied = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         occupied_2d = None if boxes_2d is None else np.asarray(boxes_2d).reshape(-1, 4)
@@ -123,8 +126,9 @@ class GroundTruthDatabase:
                 if occupied_2d is not None:
                     box_2d = candidate.box_2d[None]
                     if len(occupied_2d) and pairwise_intersection_2d(box_2d, occupied_2d).max() > 0:
-                        continue
-                    occupied_2d = np.concatenate([occupied_2d, box_2d])
+                        candidate = dataclasses.replace(candidate, crop=None)
+                    else:
+                        occupied_2d = np.concatenate([occupied_2d, box_2d])
                 accepted.append(candidate)
                 occupied = np.concatenate([occupied, box])
         return accepted

@@ -11,7 +11,7 @@ from detmatch.config import AugmentConfig, load_config
 from detmatch.data.dataset import FrameDataset, ImageTransform, image_to_tensor
 from detmatch.data.gt_sampling import GroundTruthDatabase
 from detmatch.data.kitti import KittiDataset
-from detmatch.geometry import pairwise_iou_bev, points_in_boxes
+from detmatch.geometry import pairwise_intersection_2d, pairwise_iou_bev, points_in_boxes
 from detmatch.models.build import build_detectors
 from detmatch.training.distributed import StepSampler, repeat_factors
 from detmatch.training.trainer import learning_rates
@@ -147,24 +147,29 @@ def test_learning_rate_schedules():
 def test_pasting_image_crops_adds_the_objects_to_both_detectors(synth_root):
     """With gt_sampling_image, a pasted object's crop lands at its 2D box in the image (the
     rig is the same in every frame) and its box joins the 2D targets; no pasted 2D box touches
-    another box of the frame."""
+    another box of the frame. The cloud gets the same pasted objects as without images: one
+    whose 2D box would touch another is pasted into the cloud only."""
     plain = labeled(synth_root, gt_sampling=True, gt_sample_counts=(0, 6, 6), gt_min_points=1)
     joint = labeled(synth_root, gt_sampling=True, gt_sample_counts=(0, 6, 6), gt_min_points=1,
                     gt_sampling_image=True)  # fmt: skip
     assert all(o.crop is not None for o in joint.database.objects)
-    grown = 0
+    grown_2d = grown_3d = 0
     for index in range(len(joint)):
-        sample = joint[(index, 11)]
+        sample, without = joint[(index, 11)], plain[(index, 11)]
         frame = joint.kitti.load_frame(joint.ids[index])
-        keep = np.isin(frame.labels.names, TINY.data.classes)
-        pasted = len(sample.gt_3d) - int(keep.sum())
-        assert len(sample.gt_2d) == int(keep.sum()) + pasted
-        grown += pasted
-        if pasted:
-            new = sample.gt_2d.boxes[int(keep.sum()) :]
+        kept = int(np.isin(frame.labels.names, TINY.data.classes).sum())
+        np.testing.assert_array_equal(sample.gt_3d.boxes, without.gt_3d.boxes)
+        np.testing.assert_array_equal(sample.points, without.points)
+        pasted_2d, pasted_3d = len(sample.gt_2d) - kept, len(sample.gt_3d) - kept
+        assert 0 <= pasted_2d <= pasted_3d
+        grown_2d, grown_3d = grown_2d + pasted_2d, grown_3d + pasted_3d
+        if pasted_2d:
+            new = sample.gt_2d.boxes[kept:]
             old = sample.image_transform.apply(frame.labels.boxes_2d.xyxy)
-            from detmatch.geometry import pairwise_intersection_2d
-
             assert pairwise_intersection_2d(new, old).max() == 0
-            assert not torch.equal(sample.image, plain[(index, 11)].image)
-    assert grown > 0
+            touching = pairwise_intersection_2d(new, new) > 0
+            assert not (touching & ~np.eye(len(new), dtype=bool)).any()
+            assert not torch.equal(sample.image, without.image)
+        else:
+            assert torch.equal(sample.image, without.image)
+    assert 0 < grown_2d < grown_3d  # some crops collided: those objects went to the cloud only
