@@ -23,8 +23,8 @@ import time
 import torch
 
 from detmatch.config import load_config
-from detmatch.data.dataset import FrameDataset
 from detmatch.models.build import build_detectors
+from detmatch.training.trainer import labeled_training_frames
 
 
 def main() -> None:
@@ -42,10 +42,7 @@ def main() -> None:
     data = config.data
     grid = build_detectors(config)[1].grid
     started = time.perf_counter()
-    dataset = FrameDataset(
-        data.root, data.train_split, data.classes, data.image_size, grid, augment=True,
-        projected_2d=data.train_boxes_2d == "projected", labeled_augment=config.augment,
-    )  # fmt: skip
+    dataset = labeled_training_frames(config, grid)
     setup = time.perf_counter() - started
     per_frame = []
     for round_ in range(args.rounds):

@@ -109,7 +109,7 @@ class GroundTruthDatabase:
         frame (its DontCare regions included); a candidate whose 2D box touches one of them
         or an accepted crop keeps no crop (no paste hides or cuts another object) and is
         pasted into the cloud only, so the 3D detector gets the same objects with images or
-        without (dropping them cost seed 1 5 dev 3D mAP, BENCHMARKS.md)."""
+        without (dropping them cost seed 1 5.1 dev 3D mAP, BENCHMARKS.md)."""
         accepted: list[DatabaseObject] = []
         occupied = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         occupied_2d = None if boxes_2d is None else np.asarray(boxes_2d).reshape(-1, 4)

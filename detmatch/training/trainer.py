@@ -25,7 +25,7 @@ from detmatch.config import ExperimentConfig, TrainConfig, config_to_dict
 from detmatch.data.dataset import Batch, FrameDataset, Sample, collate
 from detmatch.models.build import build_detectors
 from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
-from detmatch.models.pillars import Pillars
+from detmatch.models.pillars import PillarGrid, Pillars
 from detmatch.precision import autocast, autocast_dtype, fp32
 from detmatch.training.checkpoint import restore_rng_state, rng_state, save_checkpoint
 from detmatch.training.distributed import (
@@ -181,6 +181,21 @@ def ground_truth_targets(
     return targets_2d, targets_3d
 
 
+def labeled_training_frames(
+    config: ExperimentConfig, grid: PillarGrid, progress: bool = False
+) -> FrameDataset:
+    """The labeled training stream: the train split with flip and the config's [augment]
+    (ground-truth sampling from its own frames, rotation and scale, the 2D multi-scale window),
+    2D training boxes as [data] train_boxes_2d says."""
+    data, train = config.data, config.train
+    return FrameDataset(
+        data.root, data.train_split, data.classes, data.image_size, grid,
+        augment=True, flip_probability=train.flip_probability, seed=train.seed,
+        projected_2d=data.train_boxes_2d == "projected", labeled_augment=config.augment,
+        progress=progress,
+    )  # fmt: skip
+
+
 def leave_cores_for_workers(data_workers: int, context: DistributedContext) -> int:
     """On CPU, the number of torch threads this process keeps so that its data workers get a
     core each: the worker's loading and the step's OpenMP threads no longer fight over cores
@@ -220,12 +235,7 @@ class SupervisedTrainer:
             self.forward_3d = DistributedDataParallel(model_3d, device_ids=devices)
         grid = model_3d.grid
         data = config.data
-        self.train_set = FrameDataset(
-            data.root, data.train_split, data.classes, data.image_size, grid,
-            augment=True, flip_probability=config.train.flip_probability, seed=config.train.seed,
-            projected_2d=data.train_boxes_2d == "projected", labeled_augment=config.augment,
-            progress=context.is_main,
-        )  # fmt: skip
+        self.train_set = labeled_training_frames(config, grid, progress=context.is_main)
         self.val_set = FrameDataset(data.root, data.val_split, data.classes, data.image_size, grid)
 
     def resume(self) -> bool:
