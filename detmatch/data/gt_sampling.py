@@ -11,7 +11,8 @@ A frame is filled up to a per-class count: candidates are drawn at random, a can
 bird's-eye-view box overlaps an existing or an accepted box is dropped, the frame's own points
 inside the accepted boxes are removed and the objects' points added. Without images the pasted
 objects join the 3D targets only: the image and the 2D targets are untouched. With images, an
-object whose 2D box would touch another is pasted into the cloud only, without its crop.
+object whose 2D box would touch another, or that has no pixels (its 2D box rounds to nothing),
+is pasted into the cloud only, without its crop: the cloud gets the same objects either way.
 """
 
 from __future__ import annotations
@@ -80,11 +81,10 @@ class GroundTruthDatabase:
                 if mask.sum() < max(min_points, 1):
                     continue
                 crop = None
-                if with_images:
+                if with_images:  # no pixels: no crop, the object still goes into clouds
                     x1, y1, x2, y2 = np.round(box_2d).astype(int)
                     crop = frame.image[max(y1, 0) : y2, max(x1, 0) : x2].copy()
-                    if crop.size == 0:
-                        continue
+                    crop = crop if crop.size else None
                 objects.append(
                     DatabaseObject(
                         frame_id, classes.index(str(name)), box.copy(),
@@ -106,10 +106,10 @@ class GroundTruthDatabase:
         """Objects to paste into a frame holding boxes (N, 7) of classes (N,): per class up to
         counts[c] objects in all, from other frames, none overlapping in bird's-eye view.
         boxes_2d (M, 4), when the objects' image crops are pasted too: every 2D box of the
-        frame (its DontCare regions included); a candidate whose 2D box touches one of them
-        or an accepted crop keeps no crop (no paste hides or cuts another object) and is
-        pasted into the cloud only, so the 3D detector gets the same objects with images or
-        without (dropping them cost seed 1 5.1 dev 3D mAP, BENCHMARKS.md)."""
+        frame (its DontCare regions included); a candidate without a crop, or whose 2D box
+        touches one of them or an accepted crop, keeps no crop (no paste hides or cuts another
+        object) and is pasted into the cloud only, so the 3D detector gets the same objects
+        with images or without (dropping them cost seed 1 5.1 dev 3D mAP, BENCHMARKS.md)."""
         accepted: list[DatabaseObject] = []
         occupied = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         occupied_2d = None if boxes_2d is None else np.asarray(boxes_2d).reshape(-1, 4)
@@ -123,7 +123,7 @@ class GroundTruthDatabase:
                 box = candidate.box[None]
                 if len(occupied) and pairwise_iou_bev(box, occupied).max() > 0:
                     continue
-                if occupied_2d is not None:
+                if occupied_2d is not None and candidate.crop is not None:
                     box_2d = candidate.box_2d[None]
                     if len(occupied_2d) and pairwise_intersection_2d(box_2d, occupied_2d).max() > 0:
                         candidate = dataclasses.replace(candidate, crop=None)

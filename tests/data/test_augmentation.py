@@ -2,6 +2,8 @@
 2D multi-scale window, repeat-factor sampling and the learning-rate schedules."""
 
 import dataclasses
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,3 +175,41 @@ def test_pasting_image_crops_adds_the_objects_to_both_detectors(synth_root):
         else:
             assert torch.equal(sample.image, without.image)
     assert 0 < grown_2d < grown_3d  # some crops collided: those objects went to the cloud only
+
+
+def test_an_object_without_pixels_stays_in_the_database_for_the_cloud(synth_root, tmp_path):
+    """An object whose 2D box rounds to nothing has no crop to paste, but the database with
+    images keeps it for the cloud: it holds the same objects as the one without images, so
+    the 3D detector's pastes and random draws are the same either way."""
+    root = Path(shutil.copytree(synth_root, tmp_path / "synth"))
+    kitti = KittiDataset(root)
+    frame_id = kitti.ids("train")[0]
+    label_file = root / "training" / "label_2" / f"{frame_id}.txt"
+    lines = label_file.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.split()[0] in TINY.data.classes)
+    fields = lines[first].split()
+    fields[4:8] = ["100.2", "50.0", "100.4", "80.0"]  # a sliver: rounds to zero width
+    lines[first] = " ".join(fields)
+    label_file.write_text("\n".join(lines) + "\n")
+    ids = kitti.ids("train")
+    plain = GroundTruthDatabase.build(kitti, ids, TINY.data.classes, 1)
+    joint = GroundTruthDatabase.build(kitti, ids, TINY.data.classes, 1, with_images=True)
+    assert [(o.frame_id, o.box.tolist()) for o in joint.objects] == [
+        (o.frame_id, o.box.tolist()) for o in plain.objects
+    ]
+    sliver = [o for o in joint.objects if o.frame_id == frame_id and o.crop is None]
+    assert len(sliver) == 1
+    assert all(o.crop is not None for o in joint.objects if o is not sliver[0])
+    # Drawn into the other frames, it is pasted into the cloud and never carries a crop.
+    drawn = 0
+    for other in ids[1:]:
+        labels = kitti.load_frame(other).labels
+        for seed in range(20):
+            args = (labels.boxes_3d.data, np.zeros(len(labels), int), (30, 30, 30), other)
+            with_2d = joint.sample(np.random.default_rng(seed), *args, labels.boxes_2d.xyxy)
+            without = plain.sample(np.random.default_rng(seed), *args)
+            assert [o.box.tolist() for o in with_2d] == [o.box.tolist() for o in without]
+            slivers = [o for o in with_2d if np.array_equal(o.box, sliver[0].box)]
+            assert all(o.crop is None for o in slivers)
+            drawn += len(slivers)
+    assert drawn > 0
