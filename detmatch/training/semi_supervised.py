@@ -38,6 +38,21 @@ def _frozen_copy(model: torch.nn.Module) -> torch.nn.Module:
     return teacher
 
 
+def load_pretrained(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load pre-trained weights; a second stage the pre-training did not have (the 3D
+    detector's `refinement.*`) may be missing and keeps its fresh weights, which return the
+    first stage's boxes unchanged. Returns those missing keys; any other mismatch raises."""
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    fresh = [k for k in missing if k.startswith("refinement.")]
+    others = sorted(set(missing) - set(fresh)) + sorted(unexpected)
+    if others:
+        raise RuntimeError(
+            f"pre-trained weights do not fit {type(model).__name__}: "
+            f"missing {sorted(set(missing) - set(fresh))}, unexpected {sorted(unexpected)}"
+        )
+    return fresh
+
+
 def _total(losses: dict[str, torch.Tensor]) -> torch.Tensor:
     return sum(losses.values())
 
@@ -83,7 +98,7 @@ class TeacherStudentTrainer(SupervisedTrainer):
         if config.ssl.pretrained:
             pretrained = load_checkpoint(resolve_checkpoint(Path(config.ssl.pretrained)))
             self.state.model_2d.load_state_dict(pretrained["model_2d"])
-            self.state.model_3d.load_state_dict(pretrained["model_3d"])
+            load_pretrained(self.state.model_3d, pretrained["model_3d"])
         self.state.teacher_2d = _frozen_copy(self.state.model_2d)
         self.state.teacher_3d = _frozen_copy(self.state.model_3d)
 

@@ -16,6 +16,7 @@ from detmatch.models.contract import forward_pillars
 from detmatch.models.refine import apply_residual, nearest_labels, residual_targets
 from detmatch.structures import LabeledBoxes
 from detmatch.training.consistency import ConsistencyWeights, consistency_loss
+from detmatch.training.semi_supervised import load_pretrained
 from tests.conftest import REPO
 
 TINY = load_config(REPO / "configs" / "tiny.toml")
@@ -118,3 +119,21 @@ def test_a_refining_detector_exports_with_parity(synth_root, tmp_path):
     assert result.parity.passed, result.parity.summary()
     labeler = Labeler.from_repository(tmp_path / "models")
     assert [o.name for o in labeler.manifest.model_3d.outputs][-1] == "bev_features"
+
+
+def test_a_single_stage_pretraining_loads_into_a_refining_detector(refining):
+    """Teacher-student runs may add the second stage to a single-stage pre-training: the
+    refinement starts fresh (the dense boxes unchanged); any other missing weight is an error."""
+    model, batch = refining
+    plain = type(model)(dataclasses.replace(model.config, refine=False), model.num_classes)
+    torch.manual_seed(1)
+    for parameter in plain.parameters():
+        parameter.data.normal_(0, 0.05)
+    fresh = load_pretrained(model, plain.state_dict())
+    assert fresh and all(k.startswith("refinement.") for k in fresh)
+    outputs = forward_pillars(model.eval(), batch.pillars)
+    expected = plain.eval().decode(forward_pillars(plain, batch.pillars))[0]
+    assert torch.allclose(model.decode(outputs)[0], expected, atol=1e-5)
+    broken = {k: v for k, v in plain.state_dict().items() if not k.startswith("neck.")}
+    with pytest.raises(RuntimeError, match="neck"):
+        load_pretrained(model, broken)
