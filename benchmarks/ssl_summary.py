@@ -4,7 +4,8 @@
 
 Prints, per modality, one row per method: moderate R40 mAP of each seed, their mean, and the
 mean gain over the better of labeled-only and its EMA control (per seed); per-class means;
-then the pseudo-label precision / recall / F1 of each rule (Car) per seed.
+then the pseudo-label precision / recall / F1 of each rule and class, pooled over the
+seeds, and each seed's Figure-3 Spearman correlations.
 """
 
 from __future__ import annotations
@@ -19,6 +20,16 @@ BASELINES = ("labeled-only", "control")
 def baseline(results: dict, modality: str) -> float:
     """The better labeled-only row of one report (what a gain is measured against)."""
     return max(results[b][modality]["mAP"] for b in BASELINES if b in results)
+
+
+def pooled_quality(reports: list[dict], rule: str, name: str, modality: str) -> str:
+    """Precision / recall / F1, as text, of one rule, class and modality over all reports."""
+    rows = [report["pseudo_label_quality"][rule][name][modality] for report in reports]
+    tp = sum(row["tp"] for row in rows)
+    precision = tp / max(sum(row["num_pseudo"] for row in rows), 1)
+    recall = tp / max(sum(row["num_gt"] for row in rows), 1)
+    f1 = 2 * precision * recall / max(precision + recall, 1e-12)
+    return f"{precision:.3f} / {recall:.3f} / {f1:.3f}"
 
 
 def main() -> None:
@@ -49,17 +60,21 @@ def main() -> None:
             gain = "" if method in BASELINES else f"{sum(gains) / len(gains):+.1f}"
             print(f"| {method} | " + " | ".join(cells) + f" | {mean:.1f} | "
                   + " | ".join(f"{v:.1f}" for v in per_class) + f" | {gain} |")  # fmt: skip
-    print("\nPseudo-labels of the pre-trained teachers, Car precision / recall / F1")
-    print("| rule | modality | " + " | ".join(names) + " |")
-    print("|---|---|" + "---|" * len(names))
+    print("\nPseudo-labels of the pre-trained teachers, precision / recall / F1 pooled over the "
+          "seeds (true positives, pseudo-labels and objects summed)")  # fmt: skip
+    print("| rule | modality | " + " | ".join(classes) + " |")
+    print("|---|---|" + "---|" * len(classes))
     for rule in ("confidence", "detmatch"):
         for modality in ("3d", "2d"):
-            cells = []
-            for report in reports:
-                q = report["pseudo_label_quality"][rule]["Car"][modality]
-                f1 = 2 * q["precision"] * q["recall"] / max(q["precision"] + q["recall"], 1e-12)
-                cells.append(f"{q['precision']:.3f} / {q['recall']:.3f} / {f1:.3f}")
+            cells = [pooled_quality(reports, rule, name, modality) for name in classes]
             print(f"| {rule} | {modality} | " + " | ".join(cells) + " |")
+    print("\nFigure 3: Spearman correlation of true IoU with the max class score / the negated "
+          "matching cost")  # fmt: skip
+    for name, report in zip(names, reports, strict=True):
+        rho = report.get("figure3") or {}
+        if rho:
+            print(f"- {name}: score {rho['spearman_iou_score']:.3f}, "
+                  f"cost {rho['spearman_iou_negative_cost']:.3f}")  # fmt: skip
     print("\nrerun: python benchmarks/ssl_summary.py " + " ".join(map(str, args.reports)))
 
 
