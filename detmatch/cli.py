@@ -11,7 +11,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from detmatch.config import DEVICES, METHODS, packaged_configs
+from detmatch.config import DEVICES, METHODS, PRESETS, packaged_configs
 from detmatch.data.kitti import SUBSETS
 
 # `detmatch serve --host` when not given: the Docker image sets 0.0.0.0 (all interfaces).
@@ -140,11 +140,13 @@ def refuse_existing_run(out: Path, resume: bool) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from detmatch.config import apply_overrides, load_config
+    from detmatch.config import apply_overrides, apply_preset, load_config
 
     # Before any process of a torchrun job writes (init_distributed is their rendezvous).
     refuse_existing_run(Path(args.out), args.resume)
     config = apply_overrides(load_config(args.config), args.set)
+    if args.preset:
+        config = apply_preset(config, args.preset)
     if args.data:
         config = config.replace("data", root=args.data)
     if args.steps is not None:
@@ -431,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECTION.KEY=VALUE",
         help="override any config key, e.g. train.steps=100, data.image_size=[320,96], "
         "ssl.method=detmatch (repeatable; values are TOML literals, bare words are strings; "
-        "--data, --steps, --method and --pretrained apply after them)",
+        "--preset, --data, --steps, --method and --pretrained apply after them)",
     )
     train.add_argument("--data", help="data set root; overrides [data] root")
     train.add_argument(
@@ -453,6 +455,12 @@ def build_parser() -> argparse.ArgumentParser:
         "thresholding or DetMatch",
     )
     train.add_argument("--pretrained", help="override [ssl] pretrained: the labeled-only run")
+    train.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        help="named DetMatch settings, applied after --set (paper: the paper's constants and "
+        "loss as published; the defaults are what won on dev, BENCHMARKS.md)",
+    )
     train.add_argument(
         "--device",
         choices=DEVICES,

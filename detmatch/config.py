@@ -528,6 +528,28 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     return section, key, value
 
 
+# Named DetMatch settings (`detmatch train --preset NAME`, the benchmark's method rows): override
+# lists applied after the config file and --set. "paper": the paper's constants and loss as
+# published (both consistency terms on the 3D detector's only box regressor, pairs averaged),
+# what the defaults were before dev chose otherwise (BENCHMARKS.md, issue 14).
+PRESETS: dict[str, tuple[str, ...]] = {
+    "paper": (
+        "ssl.method=detmatch", f"ssl.tau_hung={TAU_HUNG}", "ssl.consistency_class=true",
+        "ssl.consistency_box=true", "ssl.consistency_class_weight=2.0",
+        "ssl.consistency_l1_weight=20.0", "ssl.consistency_giou_weight=2.0",
+        "ssl.consistency_reduction=pairs", "ssl.consistency_nms=false",
+        "ssl.pseudo_2d_normalizer=pseudo-labels", "detector3d.refine=false",
+    ),
+}  # fmt: skip
+
+
+def apply_preset(config: ExperimentConfig, name: str) -> ExperimentConfig:
+    """The config with a named preset (PRESETS) applied."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; known presets: {', '.join(PRESETS)}")
+    return apply_overrides(config, PRESETS[name])
+
+
 def apply_overrides(config: ExperimentConfig, overrides: Sequence[str]) -> ExperimentConfig:
     """The config with `section.key=value` overrides (`parse_override`) applied, all at once and
     then validated as a file is (so widths and depths can change together). Unknown sections

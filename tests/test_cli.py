@@ -70,6 +70,7 @@ def test_config_errors_exit_2_naming_the_key_before_anything_is_written(tmp_path
         (["--set", "data.image_size=[100,96]"], r"\[data\] image_size must be multiples of 16"),
         (["--set", "train.stepz=5"], r"unknown key 'stepz' in \[train\]"),
         (["--set", "steps=5"], r"expected section.key=value"),
+        (["--preset", "papper"], r"invalid choice: 'papper'"),
     ]
     for args, message in cases:
         result = run_cli("train", "--config", "tiny", "--out", str(out), *args)

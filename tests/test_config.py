@@ -7,11 +7,13 @@ import re
 import pytest
 
 from detmatch.config import (
+    PRESETS,
     ConfigError,
     DataConfig,
     ExperimentConfig,
     TrainConfig,
     apply_overrides,
+    apply_preset,
     config_from_dict,
     config_to_dict,
     load_config,
@@ -171,3 +173,21 @@ def test_overrides_apply_together_and_are_validated():
         apply_overrides(base, ["train.steps=many"])
     with pytest.raises(ConfigError, match=r"\[detector2d\] depths must be a list of one entry"):
         apply_overrides(base, ["detector2d.widths=[8, 16, 32]"])
+
+
+def test_the_paper_preset_restores_the_published_method_whatever_the_config_says():
+    """`--preset paper` must give the paper's loss even from a config that changed it."""
+    changed = apply_overrides(
+        load_config("tiny"),
+        ["ssl.consistency_box=false", "ssl.consistency_class=false", "ssl.tau_hung=-2.0",
+         "ssl.consistency_reduction=frames", "detector3d.refine=true", "train.steps=7"],
+    )  # fmt: skip
+    paper = apply_preset(changed, "paper")
+    assert paper.ssl.method == "detmatch"
+    assert paper.ssl.consistency_box and paper.ssl.consistency_class
+    assert paper.ssl.tau_hung == -1.5 and paper.ssl.consistency_reduction == "pairs"
+    assert not paper.detector3d.refine and not paper.ssl.consistency_nms
+    assert paper.train.steps == 7  # what the preset does not name stays
+    assert set(PRESETS) >= {"paper"}
+    with pytest.raises(ConfigError, match="unknown preset 'papper'; known presets: paper"):
+        apply_preset(changed, "papper")
