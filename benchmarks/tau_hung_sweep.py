@@ -2,7 +2,7 @@
 quality on labeled frames (the paper's Tables 4/5 ask how tau_hung moves accuracy; this asks
 the cheaper question first: how it moves the pseudo-labels the students learn from).
 
-    python benchmarks/tau_hung_sweep.py --runs runs/ssl_s0_v2/pretrain runs/ssl_s1_v2/pretrain \
+    python -m benchmarks.tau_hung_sweep --runs runs/ssl_s0_v2/pretrain runs/ssl_s1_v2/pretrain \
         runs/ssl_s2_v2/pretrain --data data/synth2k --split train_dev0.1
 
 Each run's teachers label the split's frames once; the same detections are then filtered by
@@ -101,7 +101,7 @@ def main() -> None:
     for name, found in totals.items():
         cells = [f1_cell(found[(m, c)]) for m in MODALITIES for c in classes]
         print(f"| {name} | " + " | ".join(cells) + " |")
-    print("\nrerun: python " + " ".join(sys.argv))
+    print("\nrerun: python -m benchmarks.tau_hung_sweep " + " ".join(sys.argv[1:]))
 
 
 if __name__ == "__main__":

@@ -201,8 +201,8 @@ def test_a_new_detector_trains_through_both_steps_and_exports(
     config_file = _config_file(tmp_path, synth_root)
     pre, ssl, repository = tmp_path / "pre", tmp_path / "dm", tmp_path / "models"
     assert main(["train", "--config", config_file, "--out", str(pre), "--steps", "4"]) == 0
-    assert main(["train", "--config", config_file, "--out", str(ssl), "--steps", "2",
-                 "--method", "detmatch", "--pretrained", str(pre)]) == 0  # fmt: skip
+    assert main(["train", "--config", config_file, "--out", str(ssl), "--steps", "2", "--method",
+                 "detmatch", "--pretrained", str(pre), "--preset", "paper"]) == 0  # fmt: skip
     records = [json.loads(line) for line in (ssl / "metrics.jsonl").read_text().splitlines()]
     steps = [r for r in records if "consistency" in r]
     assert [r["step"] for r in steps] == [1, 2]

@@ -27,7 +27,7 @@ def test_detmatch_trains_on_cuda(synth_root, tmp_path):
     args = ["train", "--config", str(TINY), "--data", str(synth_root), "--device", "cuda"]
     assert main([*args, "--out", str(tmp_path / "pre"), "--steps", "4"]) == 0
     assert main([*args, "--out", str(tmp_path / "ssl"), "--steps", "3", "--method", "detmatch",
-                 "--pretrained", str(tmp_path / "pre")]) == 0  # fmt: skip
+                 "--pretrained", str(tmp_path / "pre"), "--preset", "paper"]) == 0  # fmt: skip
     records = [json.loads(line) for line in (tmp_path / "ssl" / "metrics.jsonl").open()]
     assert [r["step"] for r in records if "loss" in r][-1] == 3
     assert all(torch.isfinite(torch.tensor(r["loss"])) for r in records if "loss" in r)

@@ -137,8 +137,9 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     )
     args = ["train", "--config", str(pretrain), "--data", str(synth_root)]
     assert main([*args, "--out", str(tmp_path / "pre")]) == 0
+    # The paper's preset: matching and the consistency loss (off by default).
     assert main([*args, "--out", str(tmp_path / "ssl"), "--steps", "4", "--method", "detmatch",
-                 "--pretrained", str(tmp_path / "pre")]) == 0  # fmt: skip
+                 "--pretrained", str(tmp_path / "pre"), "--preset", "paper"]) == 0  # fmt: skip
     records = [
         json.loads(line) for line in (tmp_path / "ssl" / "metrics.jsonl").read_text().splitlines()
     ]
@@ -168,11 +169,19 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     # Diagnostics: the frames' own labels as the consistency targets (the unlabeled split is
     # labeled here): every confident projected candidate near a label is pulled.
     assert main([*args, "--out", str(tmp_path / "diagnostic"), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
+                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--preset", "paper", "--set",
                  "ssl.consistency_targets=labels-projected"]) == 0  # fmt: skip
     lines = (tmp_path / "diagnostic" / "metrics.jsonl").read_text().splitlines()
     pairs = [json.loads(line)["consistency_pairs"] for line in lines if "consistency" in line]
     assert len(pairs) == 2 and sum(pairs) >= sum(r["consistency_pairs"] for r in steps[:2])
+
+    # The defaults (what won on dev): the same matching, no consistency loss.
+    assert main([*args, "--out", str(tmp_path / "default"), "--steps", "2", "--method",
+                 "detmatch", "--pretrained", str(tmp_path / "pre")]) == 0  # fmt: skip
+    lines = (tmp_path / "default" / "metrics.jsonl").read_text().splitlines()
+    default = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+    assert len(default) == 2 and sum(r["pseudo_labels_3d"] for r in default) > 0
+    assert all(r["consistency_pairs"] == 0 and r["consistency"] == 0 for r in default)
 
 
 def test_semi_supervised_methods_need_pretrained_weights(synth_root, tmp_path, capsys):
