@@ -45,7 +45,9 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     args = parser.parse_args()
     loaded = load_detectors(args.checkpoint)
-    config = apply_overrides(loaded.config, [*args.set, "ssl.method=detmatch"])
+    # The ledger measures the box term: on here whatever the run's config (off by default).
+    overrides = [*args.set, "ssl.method=detmatch", "ssl.consistency_box=true"]
+    config = apply_overrides(loaded.config, overrides)
     data, ssl = config.data, config.ssl
     teacher_2d, teacher_3d = loaded.model_2d, loaded.model_3d
     student = load_detectors(args.checkpoint).model_3d.train()
