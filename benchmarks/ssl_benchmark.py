@@ -33,6 +33,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +41,9 @@ import torch
 
 from detmatch.checkpoints import list_checkpoints
 from detmatch.config import DEVICES, PRESETS, ExperimentConfig, apply_overrides, load_config
-from detmatch.data.dataset import FrameDataset, collate
+from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.splits import dev_name, make_split, split_names
-from detmatch.eval.pseudo_labels import pseudo_label_quality
+from detmatch.eval.pseudo_labels import pooled_precision_recall_f1, pseudo_label_quality
 from detmatch.geometry import (
     boxes_touching_image,
     pairwise_iou_2d,
@@ -52,7 +53,7 @@ from detmatch.geometry import (
 )
 from detmatch.inference import predict_batch
 from detmatch.matching import matching_cost
-from detmatch.models.build import build_detectors, load_detectors
+from detmatch.models.build import LoadedDetectors, build_detectors, load_detectors
 from detmatch.pseudo_labels import confident_detections, match_detections
 from detmatch.structures import Boxes2D, Boxes3D, Detections, Labels
 from detmatch.training.distributed import DistributedContext, init_distributed
@@ -254,6 +255,24 @@ def draw_figure4(table: dict, out: Path) -> None:
     figure.savefig(out)
 
 
+def teacher_frames(
+    loaded: LoadedDetectors, dataset: FrameDataset, max_frames: int, workers: int = 0
+) -> Iterator[tuple[Sample, Detections, Detections, Labels]]:
+    """(sample, 2D detections, 3D detections, the frame's labels) of the dataset's first
+    max_frames frames, by a loaded run's detectors (its teachers)."""
+    count = min(max_frames, len(dataset))
+    loader = torch.utils.data.DataLoader(
+        torch.utils.data.Subset(dataset, range(count)),
+        batch_size=4,
+        collate_fn=collate,
+        num_workers=workers,
+    )
+    for batch in loader:
+        detections = predict_batch(loaded.model_2d, loaded.model_3d, batch)
+        for sample, (det_2d, det_3d) in zip(batch.samples, detections, strict=True):
+            yield sample, det_2d, det_3d, dataset.kitti.load_frame(sample.frame_id).labels
+
+
 def analyse_teacher(
     checkpoint: Path, config: ExperimentConfig, max_frames: int
 ) -> tuple[dict, np.ndarray, dict]:
@@ -261,44 +280,32 @@ def analyse_teacher(
     rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections; and
     Figure 4's table: 2D and 3D recall per class and occlusion level."""
     loaded = load_detectors(checkpoint)
-    model_2d, model_3d = loaded.model_2d, loaded.model_3d
     data = config.data
     dataset = FrameDataset(
-        data.root, config.ssl.unlabeled_split, data.classes, data.image_size, model_3d.grid
-    )
-    count = min(max_frames, len(dataset))
-    loader = torch.utils.data.DataLoader(
-        torch.utils.data.Subset(dataset, range(count)),
-        batch_size=4,
-        collate_fn=collate,
-        num_workers=data.num_workers,
+        data.root, config.ssl.unlabeled_split, data.classes, data.image_size, loaded.model_3d.grid
     )
     pseudo: dict[str, list[Labels]] = {"confidence": [], "detmatch": []}
     ground_truth, points, found = [], [], []
-    for batch in loader:
-        for sample, (det_2d, det_3d) in zip(
-            batch.samples, predict_batch(model_2d, model_3d, batch), strict=True
-        ):
-            labels = dataset.kitti.load_frame(sample.frame_id).labels
-            ground_truth.append(labels)
-            found += found_by(det_2d, det_3d, labels, data.classes)
-            for method, rows in pseudo_label_sets(
-                det_2d, det_3d, sample, data.classes, config
-            ).items():
-                pseudo[method].append(rows)
-            size = sample.image_transform.original_size
-            view = det_3d[boxes_touching_image(det_3d.boxes, sample.calib, size)]
-            objects = np.isin(labels.names, data.classes)
-            if len(view) == 0 or len(det_2d) == 0:
-                continue
-            iou = np.zeros(len(view))
-            if objects.any():
-                iou = pairwise_iou_3d(view.boxes, labels.boxes_3d.data[objects]).max(axis=1)
-            cost = matching_cost(
-                project_boxes_to_image(view.boxes, sample.calib, size), view.probabilities,
-                det_2d.boxes, det_2d.probabilities, size,
-            ).min(axis=1)  # fmt: skip
-            points.append(np.column_stack([iou, view.scores, cost]))
+    for sample, det_2d, det_3d, labels in teacher_frames(
+        loaded, dataset, max_frames, data.num_workers
+    ):
+        ground_truth.append(labels)
+        found += found_by(det_2d, det_3d, labels, data.classes)
+        for method, rows in pseudo_label_sets(det_2d, det_3d, sample, data.classes, config).items():
+            pseudo[method].append(rows)
+        size = sample.image_transform.original_size
+        view = det_3d[boxes_touching_image(det_3d.boxes, sample.calib, size)]
+        objects = np.isin(labels.names, data.classes)
+        if len(view) == 0 or len(det_2d) == 0:
+            continue
+        iou = np.zeros(len(view))
+        if objects.any():
+            iou = pairwise_iou_3d(view.boxes, labels.boxes_3d.data[objects]).max(axis=1)
+        cost = matching_cost(
+            project_boxes_to_image(view.boxes, sample.calib, size), view.probabilities,
+            det_2d.boxes, det_2d.probabilities, size,
+        ).min(axis=1)  # fmt: skip
+        points.append(np.column_stack([iou, view.scores, cost]))
     quality = {
         method: pseudo_label_quality(rows, ground_truth, data.classes, IOU_3D, IOU_2D)
         for method, rows in pseudo.items()
@@ -471,9 +478,9 @@ def main() -> None:
         for modality in ("3d", "2d"):
             for name in classes:
                 q = per_class[name][modality]
-                f1 = 2 * q["precision"] * q["recall"] / max(q["precision"] + q["recall"], 1e-12)
-                cells = [method, modality, name, f"{q['precision']:.3f}", f"{q['recall']:.3f}"]
-                cells += [f"{f1:.3f}", str(q["num_pseudo"]), str(q["num_gt"])]
+                cells = [method, modality, name]
+                cells += [f"{value:.3f}" for value in pooled_precision_recall_f1([q])]
+                cells += [str(q["num_pseudo"]), str(q["num_gt"])]
                 lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"Figure 3: figure3.png ({len(points)} 3D teacher boxes), Spearman {correlation}"]
     lines += ["", "## Figure 4: recall of the pre-trained detectors by occlusion (figure4.png)", ""]

@@ -14,6 +14,8 @@ import argparse
 import json
 from pathlib import Path
 
+from detmatch.eval.pseudo_labels import pooled_precision_recall_f1
+
 BASELINES = ("labeled-only", "control")
 
 
@@ -25,11 +27,7 @@ def baseline(results: dict, modality: str) -> float:
 def pooled_quality(reports: list[dict], rule: str, name: str, modality: str) -> str:
     """Precision / recall / F1, as text, of one rule, class and modality over all reports."""
     rows = [report["pseudo_label_quality"][rule][name][modality] for report in reports]
-    tp = sum(row["tp"] for row in rows)
-    precision = tp / max(sum(row["num_pseudo"] for row in rows), 1)
-    recall = tp / max(sum(row["num_gt"] for row in rows), 1)
-    f1 = 2 * precision * recall / max(precision + recall, 1e-12)
-    return f"{precision:.3f} / {recall:.3f} / {f1:.3f}"
+    return " / ".join(f"{value:.3f}" for value in pooled_precision_recall_f1(rows))
 
 
 def main() -> None:

@@ -17,54 +17,38 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-import torch
 from tqdm import tqdm
 
-from benchmarks.ssl_benchmark import IOU_2D, IOU_3D, pseudo_label_sets
-from detmatch.data.dataset import FrameDataset, collate
-from detmatch.eval.pseudo_labels import pseudo_label_quality
-from detmatch.inference import predict_batch
+from benchmarks.ssl_benchmark import IOU_2D, IOU_3D, pseudo_label_sets, teacher_frames
+from detmatch.data.dataset import FrameDataset
+from detmatch.eval.pseudo_labels import MODALITIES, pooled_precision_recall_f1, pseudo_label_quality
 from detmatch.models.build import load_detectors
 
-MODALITIES = ("3d", "2d")
 
-
-def teacher_detections(run: str, data: str, split: str) -> tuple[list, list, object]:
-    """The run's detections on every frame of the split: [(sample, det_2d, det_3d)], the
-    frames' labels, and the run's config."""
+def run_quality(run: str, data: str, split: str, taus: list[float]) -> tuple[dict, tuple]:
+    """{rule name: {(modality, class): pseudo_label_quality row}} of one run's teachers on the
+    split's frames (confidence thresholding and the matching at each tau_hung), and the
+    classes."""
     loaded = load_detectors(run)
     config = loaded.config.replace("data", root=data)
-    dataset = FrameDataset(
-        data, split, config.data.classes, config.data.image_size, loaded.model_3d.grid
-    )
-    loader = torch.utils.data.DataLoader(dataset, batch_size=4, collate_fn=collate)
-    rows, labels = [], []
-    for batch in tqdm(loader, desc=f"teachers of {run}", file=sys.stderr):
-        for sample, (det_2d, det_3d) in zip(
-            batch.samples, predict_batch(loaded.model_2d, loaded.model_3d, batch), strict=True
-        ):
-            rows.append((sample, det_2d, det_3d))
-            labels.append(dataset.kitti.load_frame(sample.frame_id).labels)
-    return rows, labels, config
-
-
-def counts(rows: list, labels: list, config, classes, rule: str) -> dict:
-    """{(modality, class): [tp, pseudo-labels, objects]} of one rule over one run's frames."""
-    pseudo = [pseudo_label_sets(d2, d3, s, classes, config)[rule] for s, d2, d3 in rows]
-    quality = pseudo_label_quality(pseudo, labels, classes, IOU_3D, IOU_2D)
-    return {
-        (m, c): np.array([quality[c][m][k] for k in ("tp", "num_pseudo", "num_gt")])
-        for m in MODALITIES
-        for c in classes
-    }
-
-
-def f1_cell(total: np.ndarray) -> str:
-    tp, pseudo, objects = total
-    precision, recall = tp / max(pseudo, 1), tp / max(objects, 1)
-    f1 = 2 * precision * recall / max(precision + recall, 1e-12)
-    return f"{precision:.3f} / {recall:.3f} / **{f1:.3f}**"
+    classes = config.data.classes
+    dataset = FrameDataset(data, split, classes, config.data.image_size, loaded.model_3d.grid)
+    frames = list(tqdm(teacher_frames(loaded, dataset, len(dataset)), total=len(dataset),
+                       desc=f"teachers of {run}", file=sys.stderr))  # fmt: skip
+    labels = [frame[3] for frame in frames]
+    per_tau = {
+        tau: [pseudo_label_sets(d2, d3, sample, classes, config.replace("ssl", tau_hung=tau))
+              for sample, d2, d3, _ in frames]
+        for tau in taus
+    }  # fmt: skip
+    rules = {"confidence": [sets["confidence"] for sets in per_tau[taus[0]]]}
+    for tau, sets in per_tau.items():
+        rules[f"DetMatch, tau_hung {tau:g}"] = [frame["detmatch"] for frame in sets]
+    quality = {}
+    for name, pseudo in rules.items():
+        rows = pseudo_label_quality(pseudo, labels, classes, IOU_3D, IOU_2D)
+        quality[name] = {(m, c): rows[c][m] for m in MODALITIES for c in classes}
+    return quality, classes
 
 
 def main() -> None:
@@ -80,26 +64,23 @@ def main() -> None:
     if args.split == "val":
         parser.error("choices are made on dev: --split val is not allowed")
     taus = [float(t) for t in args.taus.split(",")]
-    totals: dict[str, dict] = {}
-    classes = ()
+    pooled: dict[str, dict] = {}
+    classes: tuple = ()
     for run in args.runs:
-        rows, labels, config = teacher_detections(run, args.data, args.split)
-        classes = config.data.classes
-        rules = {"confidence": ("confidence", config)}
-        for tau in taus:
-            rules[f"DetMatch, tau_hung {tau:g}"] = ("detmatch", config.replace("ssl", tau_hung=tau))
-        for name, (rule, rule_config) in rules.items():
-            found = counts(rows, labels, rule_config, classes, rule)
-            for key, value in found.items():
-                totals.setdefault(name, {}).setdefault(key, np.zeros(3))
-                totals[name][key] += value
+        quality, classes = run_quality(run, args.data, args.split, taus)
+        for name, rows in quality.items():
+            for key, row in rows.items():
+                pooled.setdefault(name, {}).setdefault(key, []).append(row)
     print(f"\nPseudo-labels on {args.split} ({len(args.runs)} runs pooled): "
           "precision / recall / F1")  # fmt: skip
-    header = [f"{m.upper()} {c}" for m in MODALITIES for c in classes]
-    print("| rule | " + " | ".join(header) + " |")
-    print("|---|" + "---|" * len(header))
-    for name, found in totals.items():
-        cells = [f1_cell(found[(m, c)]) for m in MODALITIES for c in classes]
+    keys = [(m, c) for m in MODALITIES for c in classes]
+    print("| rule | " + " | ".join(f"{m.upper()} {c}" for m, c in keys) + " |")
+    print("|---|" + "---|" * len(keys))
+    for name, rows in pooled.items():
+        cells = []
+        for key in keys:
+            precision, recall, f1 = pooled_precision_recall_f1(rows[key])
+            cells.append(f"{precision:.3f} / {recall:.3f} / **{f1:.3f}**")
         print(f"| {name} | " + " | ".join(cells) + " |")
     print("\nrerun: python -m benchmarks.tau_hung_sweep " + " ".join(sys.argv[1:]))
 

@@ -69,6 +69,15 @@ def pseudo_label_quality(
     return results
 
 
+def pooled_precision_recall_f1(rows: Sequence[Mapping]) -> tuple[float, float, float]:
+    """Precision, recall and F1 of pseudo_label_quality rows (one class and modality, e.g. of
+    several runs) with their true positives, pseudo-labels and objects summed."""
+    tp = sum(row["tp"] for row in rows)
+    precision = tp / max(sum(row["num_pseudo"] for row in rows), 1)
+    recall = tp / max(sum(row["num_gt"] for row in rows), 1)
+    return precision, recall, 2 * precision * recall / max(precision + recall, 1e-12)
+
+
 class _FrameRows:
     """Labels of many frames concatenated: names (N,) lower-case; boxes_2d (N, 4) pixels;
     boxes_3d (N, 7) LiDAR frame; rank (N,) sort key, minus the score (0 without scores);

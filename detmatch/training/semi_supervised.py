@@ -44,11 +44,11 @@ def load_pretrained(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> l
     first stage's boxes unchanged. Returns those missing keys; any other mismatch raises."""
     missing, unexpected = model.load_state_dict(state, strict=False)
     fresh = [k for k in missing if k.startswith("refinement.")]
-    others = sorted(set(missing) - set(fresh)) + sorted(unexpected)
-    if others:
+    absent = sorted(set(missing) - set(fresh))
+    if absent or unexpected:
         raise RuntimeError(
             f"pre-trained weights do not fit {type(model).__name__}: "
-            f"missing {sorted(set(missing) - set(fresh))}, unexpected {sorted(unexpected)}"
+            f"missing {absent}, unexpected {sorted(unexpected)}"
         )
     return fresh
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from detmatch.eval.pseudo_labels import pseudo_label_quality
+from detmatch.eval.pseudo_labels import pooled_precision_recall_f1, pseudo_label_quality
 from detmatch.geometry import pairwise_iou_2d, pairwise_iou_3d
 from detmatch.structures import Boxes2D, Boxes3D, Labels
 
@@ -166,3 +166,13 @@ def test_random_frames_agree_with_brute_force(seed):
             expected = brute_force(pseudo, gt, name, modality, thresholds[name])
             assert (got["tp"], got["num_pseudo"], got["num_gt"]) == expected
     assert any(quality[c][m]["tp"] for c in classes for m in ("3d", "2d"))
+
+
+def test_pooled_precision_recall_f1_sums_counts_before_dividing():
+    """Pooling runs sums true positives, pseudo-labels and objects: a run with few labels
+    weighs by its counts, not as a mean of ratios; nothing labeled gives zeros, not an error."""
+    rows = [{"tp": 9, "num_pseudo": 10, "num_gt": 30}, {"tp": 0, "num_pseudo": 10, "num_gt": 0}]
+    precision, recall, f1 = pooled_precision_recall_f1(rows)
+    assert precision == pytest.approx(0.45) and recall == pytest.approx(0.3)
+    assert f1 == pytest.approx(2 * 0.45 * 0.3 / 0.75)
+    assert pooled_precision_recall_f1([{"tp": 0, "num_pseudo": 0, "num_gt": 0}]) == (0.0, 0.0, 0.0)
