@@ -43,6 +43,8 @@ from detmatch.checkpoints import list_checkpoints
 from detmatch.config import DEVICES, PRESETS, ExperimentConfig, apply_overrides, load_config
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.splits import dev_name, make_split, split_names
+from detmatch.eval.occlusion import LEVELS as OCCLUSION_LEVELS
+from detmatch.eval.occlusion import LevelCurve, object_levels
 from detmatch.eval.pseudo_labels import pooled_precision_recall_f1, pseudo_label_quality
 from detmatch.geometry import (
     boxes_touching_image,
@@ -255,6 +257,37 @@ def draw_figure4(table: dict, out: Path) -> None:
     figure.savefig(out)
 
 
+def draw_occlusion_curves(curves: dict, out: Path) -> dict:
+    """The paper's Figure 4: P/R curves of both modalities per class, one line style per
+    occlusion level. Returns {class: {level: {"objects", "2d", "3d"}}}, AP R40 in percent."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table: dict = {}
+    names = list(curves)
+    figure, axes = plt.subplots(1, len(names), figsize=(4.4 * len(names), 4), dpi=110)
+    for axis, name in zip(np.atleast_1d(axes), names, strict=True):
+        for modality, colour in (("2d", "tab:blue"), ("3d", "tab:orange")):
+            for level, style in zip(OCCLUSION_LEVELS, ("-", "--", ":"), strict=True):
+                curve = curves[name][modality][level]
+                row = table.setdefault(name, {}).setdefault(str(level), {"objects": curve.objects})
+                row[modality] = curve.average_precision()
+                precision, recall = curve.precision_recall()
+                label = f"{modality.upper()} occl. {level}: AP {row[modality]:.0f}"
+                axis.plot(recall, precision, style, color=colour, label=label)
+        axis.set_xlim(0, 1)
+        axis.set_ylim(0, 1.02)
+        axis.set_xlabel("recall")
+        axis.set_ylabel("precision")
+        axis.set_title(f"{name}: image-plane P/R by occlusion")
+        axis.legend(fontsize=6.5, loc="lower left")
+    figure.tight_layout()
+    figure.savefig(out)
+    return table
+
+
 def teacher_frames(
     loaded: LoadedDetectors, dataset: FrameDataset, max_frames: int, workers: int = 0
 ) -> Iterator[tuple[Sample, Detections, Detections, Labels]]:
@@ -273,24 +306,50 @@ def teacher_frames(
             yield sample, det_2d, det_3d, dataset.kitti.load_frame(sample.frame_id).labels
 
 
+def add_occlusion_curves(
+    curves: dict, det_2d: Detections, det_3d: Detections, sample: Sample, labels: Labels, classes
+) -> None:
+    """One frame into the paper's Figure 4 curves, curves[class][modality][level]: every 2D
+    detection, and every 3D detection touching the image projected into it, against the
+    annotated 2D boxes (detmatch.eval.occlusion)."""
+    size = sample.image_transform.original_size
+    view = det_3d[boxes_touching_image(det_3d.boxes, sample.calib, size)]
+    projected = project_boxes_to_image(view.boxes, sample.calib, size)
+    for class_id, name in enumerate(classes):
+        rows, levels = object_levels(labels.names, labels.occluded, name)
+        objects = labels.boxes_2d.xyxy[rows]
+        own_2d, own_3d = det_2d.classes == class_id, view.classes == class_id
+        for modality, boxes, scores in (
+            ("2d", det_2d.boxes[own_2d], det_2d.scores[own_2d]),
+            ("3d", projected[own_3d], view.scores[own_3d]),
+        ):
+            for level in OCCLUSION_LEVELS:
+                curve = curves.setdefault(name, {}).setdefault(modality, {})
+                curve.setdefault(level, LevelCurve()).add_frame(
+                    boxes, scores, objects, levels, level
+                )
+
+
 def analyse_teacher(
     checkpoint: Path, config: ExperimentConfig, max_frames: int
-) -> tuple[dict, np.ndarray, dict]:
+) -> tuple[dict, np.ndarray, dict, dict]:
     """Pseudo-label quality of the pre-trained teacher under both rules; Figure 3's points:
-    rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections; and
-    Figure 4's table: 2D and 3D recall per class and occlusion level."""
+    rows (true 3D IoU, max class score, best matching cost) of in-view 3D detections;
+    Figure 4's table: 2D and 3D recall per class and occlusion level; and the paper's Figure 4
+    curves: curves[class][modality][level], a LevelCurve in the image plane."""
     loaded = load_detectors(checkpoint)
     data = config.data
     dataset = FrameDataset(
         data.root, config.ssl.unlabeled_split, data.classes, data.image_size, loaded.model_3d.grid
     )
     pseudo: dict[str, list[Labels]] = {"confidence": [], "detmatch": []}
-    ground_truth, points, found = [], [], []
+    ground_truth, points, found, curves = [], [], [], {}
     for sample, det_2d, det_3d, labels in teacher_frames(
         loaded, dataset, max_frames, data.num_workers
     ):
         ground_truth.append(labels)
         found += found_by(det_2d, det_3d, labels, data.classes)
+        add_occlusion_curves(curves, det_2d, det_3d, sample, labels, data.classes)
         for method, rows in pseudo_label_sets(det_2d, det_3d, sample, data.classes, config).items():
             pseudo[method].append(rows)
         size = sample.image_transform.original_size
@@ -311,7 +370,7 @@ def analyse_teacher(
         for method, rows in pseudo.items()
     }
     points = np.concatenate(points) if points else np.zeros((0, 3))
-    return quality, points, complementarity(found, data.classes)
+    return quality, points, complementarity(found, data.classes), curves
 
 
 def draw_figure(points: np.ndarray, out: Path) -> dict[str, float]:
@@ -450,10 +509,12 @@ def main() -> None:
         )  # fmt: skip
         for split, name in scored.items()
     }
-    quality, points, recall = analyse_teacher(out / "pretrain", base, args.analysis_frames)
+    analysis = analyse_teacher(out / "pretrain", base, args.analysis_frames)
+    quality, points, recall, curves = analysis
     correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
     if recall:
         draw_figure4(recall, out / "figure4.png")
+    occlusion_ap = draw_occlusion_curves(curves, out / "figure4_pr.png") if curves else {}
     timings["report"] = time.perf_counter() - started
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
@@ -492,6 +553,12 @@ def main() -> None:
         for level, r in levels.items():
             lines.append(f"| {name} | {level} | {r['objects']} | {r['2d']:.2f} | {r['3d']:.2f} | "
                          f"{r['either']:.2f} | {r['both']:.2f} |")  # fmt: skip
+    lines += ["", "## Figure 4 as in the paper: image-plane AP (R40, IoU 0.5) by occlusion "
+              "(figure4_pr.png)", "", "| class | occlusion | objects | 2D AP | 3D AP |",
+              "|---|---|---|---|---|"]  # fmt: skip
+    for name, levels in occlusion_ap.items():
+        for level, r in levels.items():
+            lines.append(f"| {name} | {level} | {r['objects']} | {r['2d']:.1f} | {r['3d']:.1f} |")
     lines += ["", f"Wall seconds: {json.dumps({k: round(v) for k, v in timings.items()})}"]
     lines += ["", "rerun: python " + " ".join(sys.argv)]
     report = "\n".join(lines) + "\n"
@@ -505,6 +572,7 @@ def main() -> None:
         "pseudo_label_quality": quality,
         "figure3": correlation,
         "figure4": recall,
+        "figure4_pr": occlusion_ap,
         "train_wall_s": timings,
         "command": " ".join(sys.argv),
     }
