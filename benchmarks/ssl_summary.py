@@ -5,7 +5,8 @@
 Prints, per modality, one row per method: moderate R40 mAP of each seed, their mean, and the
 mean gain over the better of labeled-only and its EMA control (per seed); per-class means;
 then the pseudo-label precision / recall / F1 of each rule and class, pooled over the
-seeds, and each seed's Figure-3 Spearman correlations.
+seeds, each seed's Figure-3 Spearman correlations and, where the reports have it, each seed's
+Figure 4 (image-plane AP of both modalities by occlusion level).
 """
 
 from __future__ import annotations
@@ -73,6 +74,16 @@ def main() -> None:
         if rho:
             print(f"- {name}: score {rho['spearman_iou_score']:.3f}, "
                   f"cost {rho['spearman_iou_negative_cost']:.3f}")  # fmt: skip
+    if all(report.get("figure4_pr") for report in reports):
+        print("\nFigure 4 (the paper's): image-plane AP of the pre-trained 2D / 3D detectors by "
+              "occlusion level, per seed")  # fmt: skip
+        print("| class | occlusion | " + " | ".join(names) + " |")
+        print("|---|---|" + "---|" * len(names))
+        for name, levels in reports[0]["figure4_pr"].items():
+            for level in levels:
+                rows = [report["figure4_pr"][name][level] for report in reports]
+                cells = [f"{row['2d']:.1f} / {row['3d']:.1f}" for row in rows]
+                print(f"| {name} | {level} | " + " | ".join(cells) + " |")
     print("\nrerun: python benchmarks/ssl_summary.py " + " ".join(map(str, args.reports)))
 
 
