@@ -323,9 +323,9 @@ def add_occlusion_curves(
             ("2d", det_2d.boxes[own_2d], det_2d.scores[own_2d]),
             ("3d", projected[own_3d], view.scores[own_3d]),
         ):
+            by_level = curves.setdefault(name, {}).setdefault(modality, {})
             for level in OCCLUSION_LEVELS:
-                curve = curves.setdefault(name, {}).setdefault(modality, {})
-                curve.setdefault(level, LevelCurve()).add_frame(
+                by_level.setdefault(level, LevelCurve()).add_frame(
                     boxes, scores, objects, levels, level
                 )
 
@@ -509,8 +509,7 @@ def main() -> None:
         )  # fmt: skip
         for split, name in scored.items()
     }
-    analysis = analyse_teacher(out / "pretrain", base, args.analysis_frames)
-    quality, points, recall, curves = analysis
+    quality, points, recall, curves = analyse_teacher(out / "pretrain", base, args.analysis_frames)
     correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
     if recall:
         draw_figure4(recall, out / "figure4.png")
