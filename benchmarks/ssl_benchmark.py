@@ -307,14 +307,16 @@ def teacher_frames(
 
 
 def add_occlusion_curves(
-    curves: dict, det_2d: Detections, det_3d: Detections, sample: Sample, labels: Labels, classes
+    curves: dict,
+    det_2d: Detections,
+    view: Detections,
+    projected: np.ndarray,
+    labels: Labels,
+    classes,
 ) -> None:
     """One frame into the paper's Figure 4 curves, curves[class][modality][level]: every 2D
-    detection, and every 3D detection touching the image projected into it, against the
-    annotated 2D boxes (detmatch.eval.occlusion)."""
-    size = sample.image_transform.original_size
-    view = det_3d[boxes_touching_image(det_3d.boxes, sample.calib, size)]
-    projected = project_boxes_to_image(view.boxes, sample.calib, size)
+    detection, and every 3D detection touching the image (`view`, its boxes `projected` into
+    it), against the annotated 2D boxes (detmatch.eval.occlusion)."""
     for class_id, name in enumerate(classes):
         rows, levels = object_levels(labels.names, labels.occluded, name)
         objects = labels.boxes_2d.xyxy[rows]
@@ -349,11 +351,12 @@ def analyse_teacher(
     ):
         ground_truth.append(labels)
         found += found_by(det_2d, det_3d, labels, data.classes)
-        add_occlusion_curves(curves, det_2d, det_3d, sample, labels, data.classes)
         for method, rows in pseudo_label_sets(det_2d, det_3d, sample, data.classes, config).items():
             pseudo[method].append(rows)
         size = sample.image_transform.original_size
         view = det_3d[boxes_touching_image(det_3d.boxes, sample.calib, size)]
+        projected = project_boxes_to_image(view.boxes, sample.calib, size)
+        add_occlusion_curves(curves, det_2d, view, projected, labels, data.classes)
         objects = np.isin(labels.names, data.classes)
         if len(view) == 0 or len(det_2d) == 0:
             continue
@@ -361,9 +364,8 @@ def analyse_teacher(
         if objects.any():
             iou = pairwise_iou_3d(view.boxes, labels.boxes_3d.data[objects]).max(axis=1)
         cost = matching_cost(
-            project_boxes_to_image(view.boxes, sample.calib, size), view.probabilities,
-            det_2d.boxes, det_2d.probabilities, size,
-        ).min(axis=1)  # fmt: skip
+            projected, view.probabilities, det_2d.boxes, det_2d.probabilities, size
+        ).min(axis=1)
         points.append(np.column_stack([iou, view.scores, cost]))
     quality = {
         method: pseudo_label_quality(rows, ground_truth, data.classes, IOU_3D, IOU_2D)
