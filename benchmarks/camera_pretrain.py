@@ -65,9 +65,10 @@ def eval_records(run_dir: Path) -> dict[int, dict[str, Any]]:
 
 
 def pair(camera_run: Path, lidar_run: Path, paired: Path) -> Path:
-    """camera_run's 2D detector with lidar_run's 3D detector as a finished pre-training run
-    (camera_run's config, which must equal lidar_run's outside [detector2d] and image_size);
-    the learning curve joins both runs' dev evaluations at their common steps."""
+    """camera_run's 2D detector with lidar_run's 3D detector as a finished pre-training run:
+    lidar_run's config with camera_run's [detector2d] and [data] image_size ([train] must be
+    the same; the camera may have trained on other frames, e.g. another data set); the
+    learning curve joins both runs' dev evaluations at their common steps."""
     camera = load_checkpoint(list_checkpoints(camera_run)[-1])
     lidar = load_checkpoint(list_checkpoints(lidar_run)[-1])
     for section in ("detector3d", "train"):
@@ -75,13 +76,17 @@ def pair(camera_run: Path, lidar_run: Path, paired: Path) -> Path:
             raise SystemExit(f"[{section}] differs between {camera_run} and {lidar_run}")
     if camera["step"] != lidar["step"]:
         raise SystemExit(f"steps differ: {camera['step']} against {lidar['step']}")
-    checkpoint = dict(camera, model_3d=lidar["model_3d"], optimizer_3d=lidar["optimizer_3d"])
+    config = dict(lidar["config"], detector2d=camera["config"]["detector2d"])
+    config["data"] = dict(config["data"], image_size=camera["config"]["data"]["image_size"])
+    checkpoint = dict(
+        camera, config=config, model_3d=lidar["model_3d"], optimizer_3d=lidar["optimizer_3d"]
+    )
     camera_evals, lidar_evals = eval_records(camera_run), eval_records(lidar_run)
     checkpoint["metrics"] = {**lidar["metrics"], **camera["metrics"]}
     path = checkpoint_path(paired, camera["step"])
     path.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(path, checkpoint)
-    (paired / "config.json").write_text(json.dumps(camera["config"], indent=2))
+    (paired / "config.json").write_text(json.dumps(config, indent=2))
     with (paired / "metrics.jsonl").open("w") as log:
         for step in sorted(set(camera_evals) & set(lidar_evals)):
             joined = {**lidar_evals[step], **camera_evals[step]}

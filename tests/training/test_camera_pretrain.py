@@ -45,6 +45,8 @@ def test_camera_run_trains_2d_only_and_pairs_with_a_lidar_run(synth_root, tmp_pa
     assert same(checkpoint["model_2d"], camera["model_2d"])
     assert same(checkpoint["model_3d"], lidar["model_3d"])
     assert checkpoint["config"]["detector2d"]["widths"] == [8, 16, 24, 32]
+    assert checkpoint["config"]["detector3d"] == lidar["config"]["detector3d"]
+    assert checkpoint["config"]["data"] == {**lidar["config"]["data"], "image_size": [384, 128]}
     assert checkpoint["step"] == 6
     curve = [json.loads(line) for line in (paired / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in curve] == [6]
