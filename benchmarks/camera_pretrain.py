@@ -20,7 +20,12 @@ import json
 from pathlib import Path
 from typing import Any
 
-from detmatch.checkpoints import checkpoint_path, list_checkpoints, load_checkpoint
+from detmatch.checkpoints import (
+    checkpoint_path,
+    list_checkpoints,
+    load_checkpoint,
+    run_evaluations,
+)
 from detmatch.config import DEVICES, apply_overrides, config_to_dict, load_config
 from detmatch.data.dataset import Batch
 from detmatch.training.checkpoint import save_checkpoint
@@ -55,15 +60,6 @@ class CameraTrainer(SupervisedTrainer):
         return {"2d": scores["2d"], "full_2d": scores["full_2d"]}
 
 
-def eval_records(run_dir: Path) -> dict[int, dict[str, Any]]:
-    records = {}
-    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
-        record = json.loads(line)
-        if "eval" in record:
-            records[record["step"]] = record["eval"]
-    return records
-
-
 def pair(camera_run: Path, lidar_run: Path, paired: Path) -> Path:
     """camera_run's 2D detector with lidar_run's 3D detector as a finished pre-training run:
     lidar_run's config with camera_run's [detector2d] and [data] image_size ([train] must be
@@ -81,7 +77,7 @@ def pair(camera_run: Path, lidar_run: Path, paired: Path) -> Path:
     checkpoint = dict(
         camera, config=config, model_3d=lidar["model_3d"], optimizer_3d=lidar["optimizer_3d"]
     )
-    camera_evals, lidar_evals = eval_records(camera_run), eval_records(lidar_run)
+    camera_evals, lidar_evals = run_evaluations(camera_run), run_evaluations(lidar_run)
     checkpoint["metrics"] = {**lidar["metrics"], **camera["metrics"]}
     path = checkpoint_path(paired, camera["step"])
     path.parent.mkdir(parents=True, exist_ok=True)

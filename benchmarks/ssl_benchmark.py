@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from detmatch.checkpoints import list_checkpoints
+from detmatch.checkpoints import list_checkpoints, run_evaluations
 from detmatch.config import DEVICES, PRESETS, ExperimentConfig, apply_overrides, load_config
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.splits import dev_name, make_split, split_names
@@ -144,12 +144,10 @@ def ssl_config(base: ExperimentConfig, method: str, args: argparse.Namespace, ou
 
 def learning_curve(run_dir: Path) -> list[dict]:
     """The dev evaluations a run logged: step, 2D and 3D moderate AP per class and mAP."""
-    curve = []
-    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
-        record = json.loads(line)
-        if "eval" in record:
-            curve.append({"step": record["step"], **{m: record["eval"][m] for m in ("2d", "3d")}})
-    return curve
+    return [
+        {"step": step, **{m: evaluation[m] for m in ("2d", "3d")}}
+        for step, evaluation in run_evaluations(run_dir).items()
+    ]
 
 
 def as_labels(

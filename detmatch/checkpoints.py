@@ -6,6 +6,7 @@ it. Loaded with weights_only=True (no arbitrary pickles), mapped to the CPU.
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from typing import Any
@@ -53,3 +54,13 @@ def resolve_checkpoint(path: Path) -> Path:
             )
         return found[-1]
     raise FileNotFoundError(f"no checkpoint file or run directory at {path}")
+
+
+def run_evaluations(run_dir: Path) -> dict[int, dict[str, Any]]:
+    """The periodic evaluations a training run logged to its metrics.jsonl, by step."""
+    evaluations = {}
+    for line in (Path(run_dir) / "metrics.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if "eval" in record:
+            evaluations[record["step"]] = record["eval"]
+    return evaluations
