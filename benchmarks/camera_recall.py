@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from detmatch.data.dataset import FrameDataset, collate
-from detmatch.eval.kitti import MAX_OCCLUSION, MAX_TRUNCATION, MIN_HEIGHT
+from detmatch.eval.kitti import within_difficulty
 from detmatch.geometry import pairwise_iou_2d
 from detmatch.inference import predict_batch
 from detmatch.models.build import load_detectors
@@ -40,10 +40,8 @@ def camera_recall(run: str, split: str) -> dict[str, dict]:
         for sample, (detections, _) in zip(batch.samples, predictions, strict=True):
             objects = frames.kitti.read_objects(sample.frame_id)
             height = objects.bbox[:, 3] - objects.bbox[:, 1]
-            moderate = (
-                (height >= MIN_HEIGHT[MODERATE])
-                & (objects.occluded <= MAX_OCCLUSION[MODERATE])
-                & (objects.truncated <= MAX_TRUNCATION[MODERATE])
+            moderate = within_difficulty(
+                objects.bbox, objects.occluded, objects.truncated, MODERATE
             )
             for i in np.flatnonzero(moderate):
                 name = str(objects.names[i])

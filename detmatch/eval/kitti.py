@@ -319,16 +319,24 @@ def format_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def within_difficulty(
+    bbox: np.ndarray, occluded: np.ndarray, truncated: np.ndarray, difficulty: int
+) -> np.ndarray:
+    """(N,) bool: the ground-truth objects a difficulty (0 easy, 1 moderate, 2 hard) counts:
+    2D box height, occlusion and truncation within its limits."""
+    height = bbox[:, 3] - bbox[:, 1]
+    return (
+        (occluded <= MAX_OCCLUSION[difficulty])
+        & (truncated <= MAX_TRUNCATION[difficulty])
+        & (height >= MIN_HEIGHT[difficulty])
+    )
+
+
 def _ignore_codes(
     gt: FlatObjects, dt: FlatObjects, key: str, difficulty: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N_gt,), (N_dt,) int64 devkit codes for one class and difficulty (see kitti_stats)."""
-    height = gt.bbox[:, 3] - gt.bbox[:, 1]
-    too_hard = (
-        (gt.occluded > MAX_OCCLUSION[difficulty])
-        | (gt.truncated > MAX_TRUNCATION[difficulty])
-        | (height < MIN_HEIGHT[difficulty])
-    )
+    too_hard = ~within_difficulty(gt.bbox, gt.occluded, gt.truncated, difficulty)
     same = gt.names == key
     neighbour = gt.names == NEIGHBOUR_CLASS.get(key, "")
     ignored_gt = np.full(gt.num, -1, dtype=np.int64)
