@@ -41,6 +41,7 @@ import torch
 
 from detmatch.checkpoints import list_checkpoints, run_evaluations
 from detmatch.config import DEVICES, PRESETS, ExperimentConfig, apply_overrides, load_config
+from detmatch.constants import TAU_3D
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.splits import dev_name, make_split, split_names
 from detmatch.eval.occlusion import LEVELS as OCCLUSION_LEVELS
@@ -90,6 +91,8 @@ METHODS: dict[str, tuple[str, ...]] = {
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",
         "detector3d.refine=true",
     ),
+    # Each teacher's unmatched detections above tau_3D are ignored, not background.
+    "detmatch-ignore": (DETMATCH, f"ssl.ignore_unmatched_score={TAU_3D}"),
     # The authors' normalisations: per-frame consistency means, NMS on the student's candidates.
     "detmatch-frames-nms": (
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",

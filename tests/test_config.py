@@ -66,6 +66,7 @@ OUT_OF_RANGE = [
     ("ssl", "method", "pseudo"),
     ("ssl", "tau_3d", 1.2),
     ("ssl", "tau_2d", -0.7),
+    ("ssl", "ignore_unmatched_score", 1.5),
     ("ssl", "tau_hung", float("nan")),
     ("ssl", "pseudo_label_weight", -1.0),
     ("ssl", "consistency_l1_weight", -20.0),

@@ -66,3 +66,29 @@ def test_label_classes_are_the_argmax_of_the_probabilities(calib):
     det_2d = Detections(car_2d, np.array([0.6]), np.array([1]), np.array([[0.1, 0.6, 0.95]]))
     labels = match_detections(det_3d, det_2d, calib, IMAGE)
     assert labels.class_3d.tolist() == [2] and labels.class_2d.tolist() == [2]
+
+
+def test_detmatch_can_ignore_confident_unmatched_detections(calib):
+    """With an ignore score, each teacher's unmatched detections above it are handed over as
+    ignore regions (neither labels nor background); matched and unconfident ones are not."""
+    from detmatch.training.rules import DetMatchRule
+
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    person = [12.0, -4.0, -0.8, 0.6, 0.6, 1.8, 0.0]  # the camera does not see it
+    faint = [20.0, 5.0, -0.8, 0.6, 0.6, 1.8, 0.0]
+    det_3d = detections([car, person, faint], [[0.8, 0.1, 0.1], [0.1, 0.6, 0.1], [0.1, 0.2, 0.1]])
+    car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)[0]
+    rider_2d = [100.0, 150.0, 130.0, 230.0]  # the LiDAR does not see it
+    det_2d = detections([car_2d, rider_2d], [[0.85, 0.05, 0.1], [0.1, 0.1, 0.5]])
+
+    def rule(ignore_score):
+        return DetMatchRule(-1.5, 0.3, 4.0, False, ignore_score=ignore_score)
+
+    labels = rule(0.3).frame_labels(det_2d, det_3d, calib, IMAGE)
+    np.testing.assert_array_equal(labels.labels_3d.boxes, [car])
+    np.testing.assert_array_equal(labels.ignore_3d.boxes, [person])
+    np.testing.assert_array_equal(labels.ignore_2d.boxes, [rider_2d])
+    assert labels.ignore_3d.classes.tolist() == [1] and labels.ignore_2d.classes.tolist() == [2]
+    paper = rule(1.0).frame_labels(det_2d, det_3d, calib, IMAGE)  # the default: background
+    assert len(paper.ignore_3d) == len(paper.ignore_2d) == 0
+    np.testing.assert_array_equal(paper.labels_3d.boxes, labels.labels_3d.boxes)

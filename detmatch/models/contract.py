@@ -107,8 +107,14 @@ class Detector2D(Detector):
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]: ...
 
     @abc.abstractmethod
-    def build_targets(self, labels: LabeledBoxes, input_size: tuple[int, int]) -> Any:
-        """labels: boxes in input pixels; input_size: (W, H) of the network input."""
+    def build_targets(
+        self,
+        labels: LabeledBoxes,
+        input_size: tuple[int, int],
+        ignore: np.ndarray | None = None,
+    ) -> Any:
+        """labels: boxes in input pixels; input_size: (W, H) of the network input; ignore:
+        (M, 4) boxes in input pixels where background is not learned (uncertain objects)."""
 
 
 class LabelledArea(Protocol):
@@ -151,9 +157,15 @@ class Detector3D(Detector):
         """features (P, M, 9), coords (P, 3) (frame, iy, ix), counts (P,): a batch's pillars."""
 
     @abc.abstractmethod
-    def build_targets(self, labels: LabeledBoxes, view: LabelledArea | None = None) -> Any:
+    def build_targets(
+        self,
+        labels: LabeledBoxes,
+        view: LabelledArea | None = None,
+        ignore: np.ndarray | None = None,
+    ) -> Any:
         """labels: boxes in the input frame; view: where background may be learned (None:
-        everywhere)."""
+        everywhere); ignore: (M, 7) boxes in the input frame around which background is not
+        learned (uncertain objects)."""
 
     @abc.abstractmethod
     def consistency_candidates(self, outputs: Sequence[torch.Tensor]) -> ConsistencyCandidates: ...

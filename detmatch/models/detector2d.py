@@ -36,10 +36,11 @@ from detmatch.structures import LabeledBoxes
 @dataclass(frozen=True)
 class CenterNetTargets:
     """One image's targets on the stride-4 grid (h, w): heatmap (C, h, w) of Gaussian peaks;
-    per object the flat cell index (N,), size (N, 2) w, h in cells and the centre's sub-cell
-    offset (N, 2)."""
+    labelled_area (1, h, w) 1 where background is learned; per object the flat cell index
+    (N,), size (N, 2) w, h in cells and the centre's sub-cell offset (N, 2)."""
 
     heatmap: np.ndarray
+    labelled_area: np.ndarray
     index: np.ndarray
     size: np.ndarray
     offset: np.ndarray
@@ -120,10 +121,21 @@ class CenterNet2D(Detector2D):
         )
         return boxes, scores, classes, probabilities
 
-    def build_targets(self, labels: LabeledBoxes, input_size: tuple[int, int]) -> CenterNetTargets:
-        """Targets of one image from boxes in input pixels; input_size: (W, H)."""
+    def build_targets(
+        self,
+        labels: LabeledBoxes,
+        input_size: tuple[int, int],
+        ignore: np.ndarray | None = None,
+    ) -> CenterNetTargets:
+        """Targets of one image from boxes in input pixels; input_size: (W, H). ignore: (M, 4)
+        boxes in input pixels whose cells learn no background."""
         out_w, out_h = input_size[0] // self.stride, input_size[1] // self.stride
         heatmap = np.zeros((self.num_classes, out_h, out_w), dtype=np.float32)
+        labelled_area = np.ones((out_h, out_w), dtype=bool)
+        for box in np.zeros((0, 4)) if ignore is None else ignore:
+            x1, y1 = np.clip(np.floor(box[:2] / self.stride), 0, (out_w, out_h)).astype(int)
+            x2, y2 = np.clip(np.ceil(box[2:] / self.stride), 0, (out_w, out_h)).astype(int)
+            labelled_area[y1:y2, x1:x2] = False
         index, box_size, box_offset = [], [], []
         for box, label in zip(labels.boxes, labels.classes, strict=True):
             w, h = (box[2] - box[0]) / self.stride, (box[3] - box[1]) / self.stride
@@ -140,6 +152,7 @@ class CenterNet2D(Detector2D):
             box_offset.append(centre - cell)
         return CenterNetTargets(
             heatmap=heatmap,
+            labelled_area=labelled_area[None].astype(np.float32),
             index=np.asarray(index, dtype=np.int64),
             size=np.asarray(box_size, dtype=np.float32).reshape(-1, 2),
             offset=np.asarray(box_offset, dtype=np.float32).reshape(-1, 2),
@@ -157,7 +170,8 @@ class CenterNet2D(Detector2D):
         normalizer: what the heatmap loss is divided by (None: the targets' peaks)."""
         heatmap, size, offset = outputs
         target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)
-        focal = heatmap_focal_loss(heatmap, target_heatmap, normalizer=normalizer)
+        area = tensor_like(np.stack([t.labelled_area for t in targets]), heatmap)
+        focal = heatmap_focal_loss(heatmap, target_heatmap, area, normalizer)
         losses = {"heatmap": self.config.heatmap_weight * focal}
         if box_regression:
             losses.update(regression_losses(size, offset, targets, self.config))

@@ -279,27 +279,43 @@ class PointPillars3D(Detector3D):
         ys = (np.arange(out_h) + 0.5) * cell_y + y_min
         return np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
 
-    def build_targets(
-        self, labels: LabeledBoxes, view: LabelledArea | None = None
-    ) -> CenterPointTargets:
-        """Targets of one frame from LiDAR boxes in the input frame. view: background is
-        learned only in output cells inside the camera's view (KITTI labels only that), or
-        everywhere when None."""
+    def _centre_cell(self, box: np.ndarray) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """A box's centre in output cells, its cell and its Gaussian radius in cells (None:
+        outside the grid or degenerate)."""
         out_h, out_w = self.output_shape
         cell_x, cell_y = self.cell_size
         x_min, y_min = self.config.point_cloud_range[0], self.config.point_cloud_range[1]
+        centre = np.array([(box[0] - x_min) / cell_x, (box[1] - y_min) / cell_y])
+        cell = np.floor(centre).astype(int)
+        if not (0 <= cell[0] < out_w and 0 <= cell[1] < out_h) or np.any(box[3:6] <= 0):
+            return None
+        return centre, cell, max(2, int(gaussian_radius(box[3] / cell_x, box[4] / cell_y, 0.1)))
+
+    def build_targets(
+        self,
+        labels: LabeledBoxes,
+        view: LabelledArea | None = None,
+        ignore: np.ndarray | None = None,
+    ) -> CenterPointTargets:
+        """Targets of one frame from LiDAR boxes in the input frame. view: background is
+        learned only in output cells inside the camera's view (KITTI labels only that), or
+        everywhere when None. ignore: (M, 7) boxes whose surroundings (the square a label's
+        Gaussian would span) learn no background."""
+        out_h, out_w = self.output_shape
         heatmap = np.zeros((self.num_classes, out_h, out_w), dtype=np.float32)
         labelled_area = np.ones((out_h, out_w), dtype=bool)
         if view is not None:
             centres = self.cell_centres()
             labelled_area = view.contains_bev(centres.reshape(-1, 2)).reshape(out_h, out_w)
+        for box in np.zeros((0, 7)) if ignore is None else ignore:
+            if (found := self._centre_cell(box)) is not None:
+                (x, y), r = found[1], found[2]
+                labelled_area[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = False
         index, regression = [], []
         for box, label in zip(labels.boxes, labels.classes, strict=True):
-            centre = np.array([(box[0] - x_min) / cell_x, (box[1] - y_min) / cell_y])
-            cell = np.floor(centre).astype(int)
-            if not (0 <= cell[0] < out_w and 0 <= cell[1] < out_h) or np.any(box[3:6] <= 0):
+            if (found := self._centre_cell(box)) is None:
                 continue
-            radius = max(2, int(gaussian_radius(box[3] / cell_x, box[4] / cell_y, 0.1)))
+            centre, cell, radius = found
             draw_gaussian(heatmap[int(label)], cell[0], cell[1], radius)
             index.append(cell[1] * out_w + cell[0])
             regression.append(

@@ -4,13 +4,16 @@ section 3): a small strategy object per method, chosen once from the config.
 - `ConfidenceThresholding`: each modality keeps its own confident detections (tau_3D, tau_2D).
 - `DetMatchRule`: the 2D-3D Hungarian matching (`detmatch.pseudo_labels.match_detections`)
   keeps the objects both teachers agree on, weights the 2D pseudo-label loss x4 and hands the
-  matched 2D teacher boxes to the consistency loss.
+  matched 2D teacher boxes to the consistency loss; optionally, each teacher's confident
+  unmatched detections become ignore regions instead of background.
 """
 
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+import numpy as np
 
 from detmatch.config import SemiSupervisedConfig
 from detmatch.pseudo_labels import confident_detections, match_detections
@@ -21,11 +24,15 @@ from detmatch.structures import Calibration, Detections, LabeledBoxes
 class FramePseudoLabels:
     """One unlabeled frame's pseudo-labels, un-augmented: labels_3d LiDAR boxes, labels_2d
     original-image pixels (both with the teachers' probabilities); consistency_2d: the 2D
-    teacher boxes the 3D student is pulled towards (empty for methods without it)."""
+    teacher boxes the 3D student is pulled towards (empty for methods without it); ignore_3d /
+    ignore_2d: detections that are neither labels nor background (the students learn no
+    background around them)."""
 
     labels_3d: LabeledBoxes
     labels_2d: LabeledBoxes
     consistency_2d: LabeledBoxes
+    ignore_3d: LabeledBoxes = field(default_factory=lambda: LabeledBoxes.empty(7))
+    ignore_2d: LabeledBoxes = field(default_factory=lambda: LabeledBoxes.empty(4))
 
 
 def _labels(detections: Detections) -> LabeledBoxes:
@@ -63,15 +70,24 @@ class ConfidenceThresholding(PseudoLabelRule):
         )
 
 
+def _unmatched(detections: Detections, used: np.ndarray, threshold: float) -> LabeledBoxes:
+    """Detections outside the rows `used` whose max class probability exceeds threshold."""
+    rest = np.ones(len(detections), dtype=bool)
+    rest[used] = False
+    return _labels(detections[rest & (detections.scores > threshold)])
+
+
 @dataclass(frozen=True)
 class DetMatchRule(PseudoLabelRule):
     """tau_3d_outside_view: the confidence fallback for 3D boxes the camera cannot see (None:
-    off)."""
+    off); ignore_score: each teacher's unmatched detections above it become ignore regions
+    (1.0: none, every unmatched detection is background as in the paper)."""
 
     tau_hung: float
     tau_3d_outside_view: float | None
     weight_2d: float
     consistency: bool
+    ignore_score: float = 1.0
 
     def frame_labels(self, detections_2d, detections_3d, calib, image_size) -> FramePseudoLabels:
         matched = match_detections(
@@ -90,6 +106,8 @@ class DetMatchRule(PseudoLabelRule):
             ),
             labels_2d=teacher_2d,
             consistency_2d=teacher_2d if self.consistency else LabeledBoxes.empty(4),
+            ignore_3d=_unmatched(detections_3d, matched.index_3d, self.ignore_score),
+            ignore_2d=_unmatched(detections_2d, rows_2d, self.ignore_score),
         )
 
 
@@ -102,6 +120,7 @@ def pseudo_label_rule(ssl: SemiSupervisedConfig) -> PseudoLabelRule:
             tau_3d_outside_view=ssl.tau_3d if ssl.fov_fallback else None,
             weight_2d=ssl.detmatch_2d_pseudo_weight,
             consistency=ssl.consistency_class or ssl.consistency_box,
+            ignore_score=ssl.ignore_unmatched_score,
         ),
     }
     if ssl.method not in rules:  # labeled-only and its control learn from no pseudo-labels

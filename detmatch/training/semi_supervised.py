@@ -72,16 +72,24 @@ def pseudo_label_targets(
     pseudo: list[FramePseudoLabels],
 ) -> tuple[list[Any], list[Any]]:
     """The students' targets from pseudo-labels moved into their frames (3D background is
-    learned everywhere: the fallback labels cover what the camera cannot see)."""
+    learned everywhere, except around the rule's ignore regions: the fallback labels cover
+    what the camera cannot see)."""
     labels_2d, labels_3d = unlabeled.to_student_frames(
         [p.labels_2d for p in pseudo], [p.labels_3d for p in pseudo]
     )
+    ignore_2d, ignore_3d = unlabeled.to_student_frames(
+        [p.ignore_2d for p in pseudo], [p.ignore_3d for p in pseudo]
+    )
     samples = unlabeled.weak.samples
     targets_2d = [
-        student_2d.build_targets(labels, sample.image_transform.input_size)
-        for labels, sample in zip(labels_2d, samples, strict=True)
+        student_2d.build_targets(labels, sample.image_transform.input_size, ignore.boxes)
+        for labels, ignore, sample in zip(labels_2d, ignore_2d, samples, strict=True)
     ]
-    return targets_2d, [student_3d.build_targets(labels) for labels in labels_3d]
+    targets_3d = [
+        student_3d.build_targets(labels, ignore=ignore.boxes)
+        for labels, ignore in zip(labels_3d, ignore_3d, strict=True)
+    ]
+    return targets_2d, targets_3d
 
 
 class TeacherStudentTrainer(SupervisedTrainer):
@@ -225,6 +233,8 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
         record.update(consistency=consistency.item(), consistency_pairs=pairs)
         record.update(pseudo_labels_3d=sum(len(p.labels_3d) for p in pseudo))
         record.update(pseudo_labels_2d=sum(len(p.labels_2d) for p in pseudo))
+        record.update(ignored_3d=sum(len(p.ignore_3d) for p in pseudo))
+        record.update(ignored_2d=sum(len(p.ignore_2d) for p in pseudo))
         record.update(loss_2d=record["supervised_2d"] + record["pseudo_2d"])
         record.update(loss_3d=record["supervised_3d"] + record["pseudo_3d"])
         return record

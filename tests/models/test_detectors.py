@@ -215,3 +215,38 @@ def test_the_heatmap_loss_normalizer():
     own = heatmap_focal_loss(logits, target)  # one peak: divided by 1
     assert heatmap_focal_loss(logits, target, normalizer=8).item() == pytest.approx(own / 8)
     assert heatmap_focal_loss(logits, torch.zeros_like(target), normalizer=0).item() > 0
+
+
+def test_ignore_regions_learn_no_background(detector_2d, detector_3d):
+    """An uncertain object's surroundings are left out of the heatmap loss's background term:
+    a confident prediction there costs nothing, while the same prediction elsewhere does."""
+    from detmatch.models.common import heatmap_focal_loss
+
+    pedestrian = np.array([[20.0, 3.0, -0.8, 0.6, 0.6, 1.8, 0.0]])
+    none_3d = LabeledBoxes.empty(7)
+    free = detector_3d.build_targets(none_3d)
+    ignored = detector_3d.build_targets(none_3d, ignore=pedestrian)
+    assert free.labelled_area.all() and not ignored.heatmap.any()
+    x, y = detector_3d._centre_cell(pedestrian[0])[1]
+    hole = np.argwhere(ignored.labelled_area[0] == 0)
+    assert [y, x] in hole.tolist() and len(hole) == 25  # the 5 x 5 square of a radius-2 label
+    outside = pedestrian + [200.0, 0, 0, 0, 0, 0, 0]  # beyond the grid: ignores nothing
+    assert detector_3d.build_targets(none_3d, ignore=outside).labelled_area.all()
+
+    logits = torch.full((1, NUM_CLASSES, *free.heatmap.shape[1:]), -8.0)
+    logits[0, 1, y, x] = 4.0  # a confident pedestrian where the teacher saw one
+    target = torch.zeros_like(logits)
+    cost = [
+        heatmap_focal_loss(logits, target, torch.from_numpy(t.labelled_area[None]), 1).item()
+        for t in (free, ignored)
+    ]
+    assert cost[0] > 1.0 and cost[1] < 1e-3
+
+    width, height = TINY.data.image_size
+    rider = np.array([[40.0, 20.0, 60.0, 70.0]])
+    far_left = np.array([[-90.0, 0.0, -50.0, 40.0]])  # off the image: ignores nothing
+    targets_2d = detector_2d.build_targets(LabeledBoxes.empty(4), (width, height), rider)
+    area = targets_2d.labelled_area[0]
+    assert area[5:18, 10:15].sum() == 0 and area.sum() == area.size - 13 * 5
+    off = detector_2d.build_targets(LabeledBoxes.empty(4), (width, height), far_left)
+    assert off.labelled_area.all()

@@ -182,6 +182,16 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     default = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
     assert len(default) == 2 and sum(r["pseudo_labels_3d"] for r in default) > 0
     assert all(r["consistency_pairs"] == 0 and r["consistency"] == 0 for r in default)
+    assert all(r["ignored_3d"] == r["ignored_2d"] == 0 for r in default)
+
+    # Unmatched confident detections as ignore regions: the same labels, fewer negatives.
+    assert main([*args, "--out", str(tmp_path / "ignore"), "--steps", "2", "--method",
+                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
+                 "ssl.ignore_unmatched_score=0.1"]) == 0  # fmt: skip
+    lines = (tmp_path / "ignore" / "metrics.jsonl").read_text().splitlines()
+    ignore = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+    assert ignore[0]["pseudo_labels_3d"] == default[0]["pseudo_labels_3d"]  # the same teachers
+    assert sum(r["ignored_3d"] + r["ignored_2d"] for r in ignore) > 0
 
 
 def test_semi_supervised_methods_need_pretrained_weights(synth_root, tmp_path, capsys):
