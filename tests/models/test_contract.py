@@ -128,7 +128,9 @@ class TinyPillarNet3D(Detector3D):
         boxes = self._boxes(pixel, gather_at(box, pixel), maps.shape[3])
         return ConsistencyCandidates(boxes, gather_at(heatmap, pixel), scores, probabilities)
 
-    def build_targets(self, labels: LabeledBoxes, view: LabelledArea | None = None) -> TinyTargets:
+    def build_targets(
+        self, labels: LabeledBoxes, view: LabelledArea | None = None, ignore=None
+    ) -> TinyTargets:
         ny, nx = self.grid.shape
         h, w = ny // 2, nx // 2
         cell_x, cell_y = self.cell
@@ -140,6 +142,9 @@ class TinyPillarNet3D(Detector3D):
             ys = (np.arange(h) + 0.5) * cell_y + y_min
             centres = np.stack(np.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
             area = view.contains_bev(centres).reshape(h, w)
+        for box in np.zeros((0, 7)) if ignore is None else ignore:  # no background near these
+            cx, cy = int((box[0] - x_min) // cell_x), int((box[1] - y_min) // cell_y)
+            area[max(cy - 2, 0) : cy + 3, max(cx - 2, 0) : cx + 3] = False
         index, boxes = [], []
         for box, label in zip(labels.boxes, labels.classes, strict=True):
             centre = np.array([(box[0] - x_min) / cell_x, (box[1] - y_min) / cell_y])
@@ -202,7 +207,8 @@ def test_a_new_detector_trains_through_both_steps_and_exports(
     pre, ssl, repository = tmp_path / "pre", tmp_path / "dm", tmp_path / "models"
     assert main(["train", "--config", config_file, "--out", str(pre), "--steps", "4"]) == 0
     assert main(["train", "--config", config_file, "--out", str(ssl), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(pre), "--preset", "paper"]) == 0  # fmt: skip
+                 "detmatch", "--pretrained", str(pre), "--preset", "paper",
+                 "--set", "ssl.ignore_unmatched_score=0.1"]) == 0  # fmt: skip
     records = [json.loads(line) for line in (ssl / "metrics.jsonl").read_text().splitlines()]
     steps = [r for r in records if "consistency" in r]
     assert [r["step"] for r in steps] == [1, 2]
