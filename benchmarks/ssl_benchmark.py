@@ -92,7 +92,13 @@ METHODS: dict[str, tuple[str, ...]] = {
         "detector3d.refine=true",
     ),
     # Each teacher's unmatched detections above tau_3D are ignored, not background.
-    "detmatch-ignore": (DETMATCH, f"ssl.ignore_unmatched_score={TAU_3D}"),
+    "detmatch-ignore": (
+        DETMATCH, f"ssl.ignore_unmatched_score_3d={TAU_3D}",
+        f"ssl.ignore_unmatched_score_2d={TAU_3D}",
+    ),
+    # Only the 3D teacher's: the LiDAR finds the people the camera misses, while the camera's
+    # unmatched detections are mostly its false positives, which the 2D student should unlearn.
+    "detmatch-ignore-3d": (DETMATCH, f"ssl.ignore_unmatched_score_3d={TAU_3D}"),
     # The authors' normalisations: per-frame consistency means, NMS on the student's candidates.
     "detmatch-frames-nms": (
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",

@@ -331,10 +331,11 @@ class SemiSupervisedConfig:
     detmatch_2d_pseudo_weight: float = 4.0
     # 3D boxes outside the camera's view fall back to confidence thresholding (tau_3d).
     fov_fallback: bool = True
-    # DetMatch: a teacher's unmatched detections whose max class probability exceeds this are
-    # neither pseudo-labels nor background: that modality's pseudo-label loss learns no
-    # background around them. 1.0: off (the paper: every unmatched detection is background).
-    ignore_unmatched_score: float = 1.0
+    # DetMatch: the 3D (2D) teacher's unmatched detections whose max class probability exceeds
+    # this are neither pseudo-labels nor background: the 3D (2D) student learns no background
+    # around them. 1.0: off (the paper: every unmatched detection is background).
+    ignore_unmatched_score_3d: float = 1.0
+    ignore_unmatched_score_2d: float = 1.0
     # Switches of the 2D-teacher -> 3D-student consistency loss. Off by default: on dev its box
     # term, on the dense head, shortened cars and cost 2.7 3D mAP against matching only, which
     # tied it routed into [detector3d] refine (BENCHMARKS.md, issue 14); PRESETS["paper"] and
@@ -373,7 +374,9 @@ class SemiSupervisedConfig:
         check = _Checks(self)
         check.one_of("method", METHODS)
         check.name("unlabeled_split")
-        check.probability("tau_3d", "tau_2d", "ignore_unmatched_score")
+        check.probability(
+            "tau_3d", "tau_2d", "ignore_unmatched_score_3d", "ignore_unmatched_score_2d"
+        )
         check.finite("tau_hung")
         check.non_negative("pseudo_label_weight", "detmatch_2d_pseudo_weight")
         check.non_negative(
@@ -545,7 +548,8 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "ssl.consistency_box=true", "ssl.consistency_class_weight=2.0",
         "ssl.consistency_l1_weight=20.0", "ssl.consistency_giou_weight=2.0",
         "ssl.consistency_reduction=pairs", "ssl.consistency_nms=false",
-        "ssl.pseudo_2d_normalizer=pseudo-labels", "detector3d.refine=false",
+        "ssl.pseudo_2d_normalizer=pseudo-labels", "ssl.ignore_unmatched_score_3d=1.0",
+        "ssl.ignore_unmatched_score_2d=1.0", "detector3d.refine=false",
     ),
 }  # fmt: skip
 

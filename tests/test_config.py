@@ -66,7 +66,8 @@ OUT_OF_RANGE = [
     ("ssl", "method", "pseudo"),
     ("ssl", "tau_3d", 1.2),
     ("ssl", "tau_2d", -0.7),
-    ("ssl", "ignore_unmatched_score", 1.5),
+    ("ssl", "ignore_unmatched_score_3d", 1.5),
+    ("ssl", "ignore_unmatched_score_2d", -0.1),
     ("ssl", "tau_hung", float("nan")),
     ("ssl", "pseudo_label_weight", -1.0),
     ("ssl", "consistency_l1_weight", -20.0),
@@ -181,13 +182,16 @@ def test_the_paper_preset_restores_the_published_method_whatever_the_config_says
     changed = apply_overrides(
         load_config("tiny"),
         ["ssl.consistency_box=false", "ssl.consistency_class=false", "ssl.tau_hung=-2.0",
-         "ssl.consistency_reduction=frames", "detector3d.refine=true", "train.steps=7"],
+         "ssl.consistency_reduction=frames", "detector3d.refine=true", "train.steps=7",
+         "ssl.ignore_unmatched_score_3d=0.3", "ssl.ignore_unmatched_score_2d=0.3"],
     )  # fmt: skip
     paper = apply_preset(changed, "paper")
     assert paper.ssl.method == "detmatch"
     assert paper.ssl.consistency_box and paper.ssl.consistency_class
     assert paper.ssl.tau_hung == -1.5 and paper.ssl.consistency_reduction == "pairs"
     assert not paper.detector3d.refine and not paper.ssl.consistency_nms
+    # The paper's rule: every unmatched detection is background.
+    assert paper.ssl.ignore_unmatched_score_3d == paper.ssl.ignore_unmatched_score_2d == 1.0
     assert paper.train.steps == 7  # what the preset does not name stays
     assert set(PRESETS) >= {"paper"}
     with pytest.raises(ConfigError, match="unknown preset 'papper'; known presets: paper"):

@@ -81,14 +81,19 @@ def test_detmatch_can_ignore_confident_unmatched_detections(calib):
     rider_2d = [100.0, 150.0, 130.0, 230.0]  # the LiDAR does not see it
     det_2d = detections([car_2d, rider_2d], [[0.85, 0.05, 0.1], [0.1, 0.1, 0.5]])
 
-    def rule(ignore_score):
-        return DetMatchRule(-1.5, 0.3, 4.0, False, ignore_score=ignore_score)
+    def rule(score_3d, score_2d):
+        return DetMatchRule(-1.5, 0.3, 4.0, False, ignore_score_3d=score_3d,
+                            ignore_score_2d=score_2d)  # fmt: skip
 
-    labels = rule(0.3).frame_labels(det_2d, det_3d, calib, IMAGE)
+    labels = rule(0.3, 0.3).frame_labels(det_2d, det_3d, calib, IMAGE)
     np.testing.assert_array_equal(labels.labels_3d.boxes, [car])
     np.testing.assert_array_equal(labels.ignore_3d.boxes, [person])
     np.testing.assert_array_equal(labels.ignore_2d.boxes, [rider_2d])
     assert labels.ignore_3d.classes.tolist() == [1] and labels.ignore_2d.classes.tolist() == [2]
-    paper = rule(1.0).frame_labels(det_2d, det_3d, calib, IMAGE)  # the default: background
+    paper = rule(1.0, 1.0).frame_labels(det_2d, det_3d, calib, IMAGE)  # the default: background
     assert len(paper.ignore_3d) == len(paper.ignore_2d) == 0
     np.testing.assert_array_equal(paper.labels_3d.boxes, labels.labels_3d.boxes)
+    # Each modality has its own score: here only the 3D teacher's unmatched boxes are ignored.
+    lidar_only = rule(0.3, 1.0).frame_labels(det_2d, det_3d, calib, IMAGE)
+    np.testing.assert_array_equal(lidar_only.ignore_3d.boxes, [person])
+    assert len(lidar_only.ignore_2d) == 0

@@ -80,14 +80,15 @@ def _unmatched(detections: Detections, used: np.ndarray, threshold: float) -> La
 @dataclass(frozen=True)
 class DetMatchRule(PseudoLabelRule):
     """tau_3d_outside_view: the confidence fallback for 3D boxes the camera cannot see (None:
-    off); ignore_score: each teacher's unmatched detections above it become ignore regions
-    (1.0: none, every unmatched detection is background as in the paper)."""
+    off); ignore_score_3d / ignore_score_2d: that teacher's unmatched detections above it become
+    ignore regions (1.0: none, every unmatched detection is background as in the paper)."""
 
     tau_hung: float
     tau_3d_outside_view: float | None
     weight_2d: float
     consistency: bool
-    ignore_score: float = 1.0
+    ignore_score_3d: float = 1.0
+    ignore_score_2d: float = 1.0
 
     def frame_labels(self, detections_2d, detections_3d, calib, image_size) -> FramePseudoLabels:
         matched = match_detections(
@@ -106,8 +107,8 @@ class DetMatchRule(PseudoLabelRule):
             ),
             labels_2d=teacher_2d,
             consistency_2d=teacher_2d if self.consistency else LabeledBoxes.empty(4),
-            ignore_3d=_unmatched(detections_3d, matched.index_3d, self.ignore_score),
-            ignore_2d=_unmatched(detections_2d, rows_2d, self.ignore_score),
+            ignore_3d=_unmatched(detections_3d, matched.index_3d, self.ignore_score_3d),
+            ignore_2d=_unmatched(detections_2d, rows_2d, self.ignore_score_2d),
         )
 
 
@@ -120,7 +121,8 @@ def pseudo_label_rule(ssl: SemiSupervisedConfig) -> PseudoLabelRule:
             tau_3d_outside_view=ssl.tau_3d if ssl.fov_fallback else None,
             weight_2d=ssl.detmatch_2d_pseudo_weight,
             consistency=ssl.consistency_class or ssl.consistency_box,
-            ignore_score=ssl.ignore_unmatched_score,
+            ignore_score_3d=ssl.ignore_unmatched_score_3d,
+            ignore_score_2d=ssl.ignore_unmatched_score_2d,
         ),
     }
     if ssl.method not in rules:  # labeled-only and its control learn from no pseudo-labels

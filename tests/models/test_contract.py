@@ -208,7 +208,8 @@ def test_a_new_detector_trains_through_both_steps_and_exports(
     assert main(["train", "--config", config_file, "--out", str(pre), "--steps", "4"]) == 0
     assert main(["train", "--config", config_file, "--out", str(ssl), "--steps", "2", "--method",
                  "detmatch", "--pretrained", str(pre), "--preset", "paper",
-                 "--set", "ssl.ignore_unmatched_score=0.1"]) == 0  # fmt: skip
+                 "--set", "ssl.ignore_unmatched_score_3d=0.1", "--set",
+                 "ssl.ignore_unmatched_score_2d=0.1"]) == 0  # fmt: skip
     records = [json.loads(line) for line in (ssl / "metrics.jsonl").read_text().splitlines()]
     steps = [r for r in records if "consistency" in r]
     assert [r["step"] for r in steps] == [1, 2]

@@ -187,7 +187,8 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     # Unmatched confident detections as ignore regions: the same labels, fewer negatives.
     assert main([*args, "--out", str(tmp_path / "ignore"), "--steps", "2", "--method",
                  "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
-                 "ssl.ignore_unmatched_score=0.1"]) == 0  # fmt: skip
+                 "ssl.ignore_unmatched_score_3d=0.1", "--set",
+                 "ssl.ignore_unmatched_score_2d=0.1"]) == 0  # fmt: skip
     lines = (tmp_path / "ignore" / "metrics.jsonl").read_text().splitlines()
     ignore = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
     assert ignore[0]["pseudo_labels_3d"] == default[0]["pseudo_labels_3d"]  # the same teachers
