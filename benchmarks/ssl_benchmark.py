@@ -43,6 +43,7 @@ from detmatch.checkpoints import list_checkpoints, run_evaluations
 from detmatch.config import DEVICES, PRESETS, ExperimentConfig, apply_overrides, load_config
 from detmatch.constants import TAU_3D
 from detmatch.data.dataset import FrameDataset, Sample, collate
+from detmatch.data.kitti import read_image_set, write_image_set
 from detmatch.data.splits import dev_name, make_split, split_names
 from detmatch.eval.occlusion import LEVELS as OCCLUSION_LEVELS
 from detmatch.eval.occlusion import LevelCurve, object_levels
@@ -104,6 +105,9 @@ METHODS: dict[str, tuple[str, ...]] = {
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",
         "ssl.consistency_reduction=frames", "ssl.consistency_nms=true",
     ),
+    # Not a method: the control trained on every label of the labeled and unlabeled frames (dev
+    # held out), the stage's schedule from the same weights: what it gives with right labels.
+    "every-label": ("ssl.method=labeled-only-control",),
 }  # fmt: skip
 BASELINES = ("labeled-only", "control")
 
@@ -129,6 +133,18 @@ def train_stage(
     return time.perf_counter() - start
 
 
+def every_label_split(args: argparse.Namespace) -> str:
+    """ImageSets name of the labeled and unlabeled frames together (train without dev), written
+    when missing: the every-label run's training frames."""
+    labeled, unlabeled = split_names(args.fraction, args.seed, dev_fraction=args.dev_fraction)
+    name = f"train_nodev{args.dev_fraction:g}"
+    sets = Path(args.data) / "ImageSets"
+    if not (sets / f"{name}.txt").exists():
+        ids = read_image_set(sets / f"{labeled}.txt") + read_image_set(sets / f"{unlabeled}.txt")
+        write_image_set(sets / f"{name}.txt", sorted(ids))
+    return name
+
+
 def splits(args: argparse.Namespace) -> tuple[str, str, str]:
     """(labeled, unlabeled, dev) ImageSets names of the seed, written when missing."""
     labeled, unlabeled = split_names(args.fraction, args.seed, dev_fraction=args.dev_fraction)
@@ -142,6 +158,8 @@ def ssl_config(base: ExperimentConfig, method: str, args: argparse.Namespace, ou
     """A teacher-student run's config: the method's [ssl] settings from the pre-trained run,
     --ssl-steps at the pre-training rates x --ssl-lr-factor, constant after a warm-up."""
     config = apply_overrides(base, METHODS[method]).replace("ssl", pretrained=str(out / "pretrain"))
+    if method == "every-label":
+        config = config.replace("data", train_split=every_label_split(args))
     train = base.train
     return config.replace(
         "train", steps=args.ssl_steps, eval_every=args.ssl_steps, schedule_2d="constant",

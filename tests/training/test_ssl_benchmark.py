@@ -1,0 +1,52 @@
+"""benchmarks/ssl_benchmark.py: the configs of its teacher-student runs (no training here)."""
+
+import argparse
+import shutil
+
+from benchmarks.ssl_benchmark import splits, ssl_config
+from detmatch.config import load_config
+from detmatch.data.kitti import read_image_set
+from tests.conftest import REPO
+
+TINY = REPO / "configs" / "tiny.toml"
+
+
+def benchmark_args(data, lr_factor: float) -> argparse.Namespace:
+    return argparse.Namespace(
+        data=str(data), fraction=0.25, seed=0, dev_fraction=0.25, ssl_steps=40,
+        ssl_lr_factor=lr_factor,
+    )  # fmt: skip
+
+
+def test_runs_start_from_the_pretraining_at_its_rates_times_the_factor(synth_root, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(synth_root, data)
+    args = benchmark_args(data, lr_factor=0.5)
+    labeled, unlabeled, dev = splits(args)
+    base = load_config(TINY).replace("data", root=str(data), train_split=labeled, val_split=dev)
+    config = ssl_config(base, "detmatch", args, tmp_path / "runs")
+
+    assert config.ssl.method == "detmatch"
+    assert config.ssl.pretrained == str(tmp_path / "runs" / "pretrain")
+    assert (config.train.lr_2d, config.train.lr_3d) == (base.train.lr_2d / 2, base.train.lr_3d / 2)
+    assert (config.train.schedule_2d, config.train.schedule_3d) == ("constant", "constant")
+    assert config.train.steps == 40
+    assert config.data.train_split == labeled
+
+
+def test_the_every_label_run_trains_on_labeled_and_unlabeled_frames_not_dev(synth_root, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(synth_root, data)
+    args = benchmark_args(data, lr_factor=1.0)
+    labeled, unlabeled, dev = splits(args)
+    base = load_config(TINY).replace("data", root=str(data), train_split=labeled, val_split=dev)
+    config = ssl_config(base, "every-label", args, tmp_path / "runs")
+
+    sets = data / "ImageSets"
+    frames = {name: set(read_image_set(sets / f"{name}.txt")) for name in (labeled, unlabeled, dev)}
+    every = set(read_image_set(sets / f"{config.data.train_split}.txt"))
+    assert frames[labeled] and frames[unlabeled] and frames[dev]
+    assert every == frames[labeled] | frames[unlabeled]
+    assert every == set(read_image_set(sets / "train.txt")) - frames[dev]
+    assert config.ssl.method == "labeled-only-control"  # the stage's schedule, no pseudo-labels
+    assert config.data.val_split == dev
