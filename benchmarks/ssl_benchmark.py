@@ -17,7 +17,9 @@ Stages (each skipped when its run directory already holds a finished checkpoint)
 2. each method of --methods for --ssl-steps from the pre-trained weights, at a constant
    learning rate (the pre-training rates x --ssl-lr-factor) after a short warm-up:
    labeled-only-control (the same schedule and EMA teacher, labeled frames only),
-   confidence thresholding, DetMatch and its ablations;
+   confidence thresholding, DetMatch and its ablations, and every-label (the control on every
+   label of the labeled and unlabeled frames: what the stage gives if every pseudo-label is
+   right, a reference for a method's gain, not a method);
 3. moderate R40 AP per class on dev (every run) and on val (once), 2D (bbox) and 3D, with the
    gain over the better of labeled-only and its control (the paper's Tables 1 and 2);
 4. pseudo-label precision / recall / F1 on unlabeled frames against their hidden labels: the
