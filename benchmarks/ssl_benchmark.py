@@ -158,14 +158,15 @@ def splits(args: argparse.Namespace) -> tuple[str, str, str]:
 
 def ssl_config(base: ExperimentConfig, method: str, args: argparse.Namespace, out: Path):
     """A teacher-student run's config: the method's [ssl] settings from the pre-trained run,
-    --ssl-steps at the pre-training rates x --ssl-lr-factor, constant after a warm-up."""
+    --ssl-steps at the pre-training rates x --ssl-lr-factor, constant after a warm-up, scored
+    on dev halfway and at the end."""
     config = apply_overrides(base, METHODS[method]).replace("ssl", pretrained=str(out / "pretrain"))
     if method == "every-label":
         config = config.replace("data", train_split=every_label_split(args))
     train = base.train
     return config.replace(
-        "train", steps=args.ssl_steps, eval_every=args.ssl_steps, schedule_2d="constant",
-        schedule_3d="constant", lr_2d=train.lr_2d * args.ssl_lr_factor,
+        "train", steps=args.ssl_steps, eval_every=max(args.ssl_steps // 2, 1),
+        schedule_2d="constant", schedule_3d="constant", lr_2d=train.lr_2d * args.ssl_lr_factor,
         lr_3d=train.lr_3d * args.ssl_lr_factor, warmup_steps=min(train.warmup_steps, 50),
         checkpoint_every=min(train.checkpoint_every, args.ssl_steps),
     )  # fmt: skip
@@ -469,7 +470,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="split seed of the labeled subset")
     parser.add_argument("--fraction", type=float, default=0.05, help="labeled fraction of train")
     parser.add_argument("--dev-fraction", type=float, default=0.1, help="dev fraction of train")
-    parser.add_argument("--ssl-steps", type=int, default=600)
+    parser.add_argument(
+        "--ssl-steps", type=int, default=1200,
+        help="teacher-student steps (dev chose 1,200 over 600: BENCHMARKS.md, issue 14)",
+    )  # fmt: skip
     parser.add_argument("--ssl-lr-factor", type=float, default=0.1,
                         help="teacher-student learning rates: pre-training's x this")  # fmt: skip
     parser.add_argument("--analysis-frames", type=int, default=200)

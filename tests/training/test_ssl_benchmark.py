@@ -31,6 +31,7 @@ def test_runs_start_from_the_pretraining_at_its_rates_times_the_factor(synth_roo
     assert (config.train.lr_2d, config.train.lr_3d) == (base.train.lr_2d / 2, base.train.lr_3d / 2)
     assert (config.train.schedule_2d, config.train.schedule_3d) == ("constant", "constant")
     assert config.train.steps == 40
+    assert config.train.eval_every == 20  # dev halfway and at the end
     assert config.data.train_split == labeled
 
 
