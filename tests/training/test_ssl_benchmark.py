@@ -11,20 +11,21 @@ from tests.conftest import REPO
 TINY = REPO / "configs" / "tiny.toml"
 
 
-def benchmark_args(data, lr_factor: float) -> argparse.Namespace:
-    return argparse.Namespace(
+def run_config(synth_root, tmp_path, method: str, lr_factor: float):
+    """The benchmark's splits on a copy of the tiny synthetic set, and `method`'s run config."""
+    data = tmp_path / "data"
+    shutil.copytree(synth_root, data)
+    args = argparse.Namespace(
         data=str(data), fraction=0.25, seed=0, dev_fraction=0.25, ssl_steps=40,
         ssl_lr_factor=lr_factor,
     )  # fmt: skip
+    labeled, unlabeled, dev = splits(args)
+    base = load_config(TINY).replace("data", root=str(data), train_split=labeled, val_split=dev)
+    return data, (labeled, unlabeled, dev), base, ssl_config(base, method, args, tmp_path / "runs")
 
 
 def test_runs_start_from_the_pretraining_at_its_rates_times_the_factor(synth_root, tmp_path):
-    data = tmp_path / "data"
-    shutil.copytree(synth_root, data)
-    args = benchmark_args(data, lr_factor=0.5)
-    labeled, unlabeled, dev = splits(args)
-    base = load_config(TINY).replace("data", root=str(data), train_split=labeled, val_split=dev)
-    config = ssl_config(base, "detmatch", args, tmp_path / "runs")
+    _, (labeled, _, _), base, config = run_config(synth_root, tmp_path, "detmatch", lr_factor=0.5)
 
     assert config.ssl.method == "detmatch"
     assert config.ssl.pretrained == str(tmp_path / "runs" / "pretrain")
@@ -36,12 +37,9 @@ def test_runs_start_from_the_pretraining_at_its_rates_times_the_factor(synth_roo
 
 
 def test_the_every_label_run_trains_on_labeled_and_unlabeled_frames_not_dev(synth_root, tmp_path):
-    data = tmp_path / "data"
-    shutil.copytree(synth_root, data)
-    args = benchmark_args(data, lr_factor=1.0)
-    labeled, unlabeled, dev = splits(args)
-    base = load_config(TINY).replace("data", root=str(data), train_split=labeled, val_split=dev)
-    config = ssl_config(base, "every-label", args, tmp_path / "runs")
+    data, (labeled, unlabeled, dev), _, config = run_config(
+        synth_root, tmp_path, "every-label", lr_factor=1.0
+    )
 
     sets = data / "ImageSets"
     frames = {name: set(read_image_set(sets / f"{name}.txt")) for name in (labeled, unlabeled, dev)}
