@@ -1,13 +1,17 @@
 #!/usr/bin/env bash
 # The semi-supervised benchmark over several split seeds: one benchmarks/ssl_benchmark.py
-# process per seed, all at once (on a GPU machine they share the GPU and its cores; on the
-# 2-core CPU run one seed at a time: SEEDS=0), then the summary over seeds (BENCHMARKS.md).
+# process per seed, then the summary over seeds and the issue-14 targets (BENCHMARKS.md).
+# With a GPU the seeds run all at once (they share the GPU and its cores); without one they
+# run one after another, each with every core (two torch processes on a few cores slow each
+# other several-fold).
 #
 #   benchmarks/ssl_seeds.sh [ssl_benchmark.py options...]
 #
 # Settings (environment): DATA (data set root; generated when missing), RUNS (run
-# directories), SEEDS, CONFIG, DEVICE, THREADS (torch threads per process), PYTHON, and
-# STAGE_TIMEOUT (seconds each process may run; unset: no limit). A rerun skips finished runs.
+# directories), SEEDS, CONFIG, DEVICE, PARALLEL (1: seeds at once, 0: one after another;
+# default 1 where nvidia-smi finds a GPU), THREADS (torch threads per process; default 1 at
+# once, every core one after another), PYTHON, and STAGE_TIMEOUT (seconds each process may
+# run; unset: no limit). A rerun skips finished runs and resumes unfinished ones.
 set -euo pipefail
 
 DATA=${DATA:-data/synth2k}
@@ -15,19 +19,32 @@ RUNS=${RUNS:-runs/ssl}
 SEEDS=${SEEDS:-0 1 2}
 CONFIG=${CONFIG:-configs/ssl_cpu.toml}
 DEVICE=${DEVICE:-auto}
-THREADS=${THREADS:-1}
+if [ -z "${PARALLEL:-}" ]; then
+    PARALLEL=0
+    if nvidia-smi --list-gpus >/dev/null 2>&1; then PARALLEL=1; fi
+fi
 PYTHON=${PYTHON:-python3}
+CORES=$("$PYTHON" -c 'import os; print(os.cpu_count())')
+if [ "$PARALLEL" = 1 ]; then THREADS=${THREADS:-1}; else THREADS=${THREADS:-$CORES}; fi
 mkdir -p "$RUNS/logs"
 
 if [ ! -f "$DATA/ImageSets/val.txt" ]; then
     "$PYTHON" -m detmatch.cli synth --out "$DATA" --frames 2000 --seed 0 \
-        --workers "$("$PYTHON" -c 'import os; print(os.cpu_count())')" --quiet
+        --workers "$CORES" --quiet
 fi
 failed=0
-for seed in $SEEDS; do
+run_seed() {
     OMP_NUM_THREADS=$THREADS ${STAGE_TIMEOUT:+timeout "$STAGE_TIMEOUT"} "$PYTHON" \
-        benchmarks/ssl_benchmark.py --config "$CONFIG" --data "$DATA" --seed "$seed" \
-        --out "$RUNS/s$seed" --device "$DEVICE" "$@" >"$RUNS/logs/s$seed.log" 2>&1 &
+        benchmarks/ssl_benchmark.py --config "$CONFIG" --data "$DATA" --seed "$1" \
+        --out "$RUNS/s$1" --device "$DEVICE" "${@:2}" >"$RUNS/logs/s$1.log" 2>&1
+}
+for seed in $SEEDS; do
+    if [ "$PARALLEL" = 1 ]; then
+        run_seed "$seed" "$@" &
+    else
+        echo "seed $seed: $RUNS/logs/s$seed.log"
+        run_seed "$seed" "$@" || failed=1
+    fi
 done
 for job in $(jobs -p); do wait "$job" || failed=1; done
 reports=()
