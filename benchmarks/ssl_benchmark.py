@@ -42,7 +42,14 @@ import numpy as np
 import torch
 
 from detmatch.checkpoints import list_checkpoints, run_evaluations
-from detmatch.config import DEVICES, PRESETS, ExperimentConfig, apply_overrides, load_config
+from detmatch.config import (
+    DEVICES,
+    PRESETS,
+    ExperimentConfig,
+    apply_overrides,
+    load_config,
+    teacher_student_config,
+)
 from detmatch.constants import TAU_3D
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.kitti import read_image_set, write_image_set
@@ -157,18 +164,22 @@ def splits(args: argparse.Namespace) -> tuple[str, str, str]:
 
 
 def ssl_config(base: ExperimentConfig, method: str, args: argparse.Namespace, out: Path):
-    """A teacher-student run's config: the method's [ssl] settings from the pre-trained run,
-    --ssl-steps at the pre-training rates x --ssl-lr-factor, constant after a warm-up, scored
-    on dev halfway and at the end."""
+    """A teacher-student run's config: the method's [ssl] settings from the pre-trained run, the
+    [ssl] stage's schedule (`teacher_student_config`: constant rates after a warm-up) with
+    --ssl-steps and the pre-training rates x --ssl-lr-factor where given, scored on dev halfway
+    and at the end."""
     config = apply_overrides(base, METHODS[method]).replace("ssl", pretrained=str(out / "pretrain"))
     if method == "every-label":
         config = config.replace("data", train_split=every_label_split(args))
-    train = base.train
+    stage = {} if args.ssl_steps is None else {"steps": args.ssl_steps}
+    if args.ssl_lr_factor is not None:
+        factor = args.ssl_lr_factor
+        stage.update(lr_2d=base.train.lr_2d * factor, lr_3d=base.train.lr_3d * factor)
+    config = teacher_student_config(config.replace("ssl", **stage))
+    steps = config.train.steps
     return config.replace(
-        "train", steps=args.ssl_steps, eval_every=max(args.ssl_steps // 2, 1),
-        schedule_2d="constant", schedule_3d="constant", lr_2d=train.lr_2d * args.ssl_lr_factor,
-        lr_3d=train.lr_3d * args.ssl_lr_factor, warmup_steps=min(train.warmup_steps, 50),
-        checkpoint_every=min(train.checkpoint_every, args.ssl_steps),
+        "train", eval_every=max(steps // 2, 1),
+        checkpoint_every=min(base.train.checkpoint_every, steps),
     )  # fmt: skip
 
 
@@ -471,11 +482,15 @@ def main() -> None:
     parser.add_argument("--fraction", type=float, default=0.05, help="labeled fraction of train")
     parser.add_argument("--dev-fraction", type=float, default=0.1, help="dev fraction of train")
     parser.add_argument(
-        "--ssl-steps", type=int, default=1200,
-        help="teacher-student steps (dev chose 1,200 over 600: BENCHMARKS.md, issue 14)",
+        "--ssl-steps", type=int,
+        help="teacher-student steps (default: the config's [ssl] steps; dev chose 1,200 over 600: "
+        "BENCHMARKS.md, issue 14)",
     )  # fmt: skip
-    parser.add_argument("--ssl-lr-factor", type=float, default=0.1,
-                        help="teacher-student learning rates: pre-training's x this")  # fmt: skip
+    parser.add_argument(
+        "--ssl-lr-factor", type=float,
+        help="teacher-student learning rates: pre-training's x this (default: the config's "
+        "[ssl] lr_2d and lr_3d, 0.1x the pre-training's in configs/ssl_cpu.toml)",
+    )  # fmt: skip
     parser.add_argument("--analysis-frames", type=int, default=200)
     parser.add_argument(
         "--methods",
@@ -511,10 +526,11 @@ def main() -> None:
     if args.workers is not None:
         base = base.replace("data", num_workers=args.workers)
     classes = base.data.classes
+    stage = ssl_config(base, "control", args, out).train  # every method's steps and rates
     context = init_distributed(args.device)
     timings = {}
     if args.report_only:
-        for method in [m for m in methods if not finished(out / m, args.ssl_steps)]:
+        for method in [m for m in methods if not finished(out / m, stage.steps)]:
             print(f"{method}: run unfinished, left out of the report", file=sys.stderr)
             methods.remove(method)
     else:
@@ -551,7 +567,8 @@ def main() -> None:
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
     lines += [f"Labeled {labeled}, unlabeled {unlabeled}, dev {dev}; config {args.config}"]
-    lines += [f"{' '.join(args.set)}; {args.ssl_steps} teacher-student steps.", ""]
+    lines += [f"{' '.join(args.set)}; {stage.steps} teacher-student steps at rates "
+              f"{stage.lr_2d:g} (2D) and {stage.lr_3d:g} (3D).", ""]  # fmt: skip
     for split in results:
         for modality in ("3d", "2d"):
             lines += [f"## {split}: {modality.upper()} AP (moderate, R40)", ""]

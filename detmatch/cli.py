@@ -140,7 +140,12 @@ def refuse_existing_run(out: Path, resume: bool) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from detmatch.config import apply_overrides, apply_preset, load_config
+    from detmatch.config import (
+        apply_overrides,
+        apply_preset,
+        load_config,
+        teacher_student_config,
+    )
 
     # Before any process of a torchrun job writes (init_distributed is their rendezvous).
     refuse_existing_run(Path(args.out), args.resume)
@@ -149,12 +154,13 @@ def _train(args: argparse.Namespace) -> int:
         config = apply_preset(config, args.preset)
     if args.data:
         config = config.replace("data", root=args.data)
-    if args.steps is not None:
-        config = config.replace("train", steps=args.steps)
     if args.method:
         config = config.replace("ssl", method=args.method)
     if args.pretrained:
         config = config.replace("ssl", pretrained=args.pretrained)
+    config = teacher_student_config(config)
+    if args.steps is not None:
+        config = config.replace("train", steps=args.steps)
     if config.ssl.method != "labeled-only" and not config.ssl.pretrained and not args.resume:
         raise ValueError(
             f"--method {config.ssl.method} starts from pre-trained weights: pass --pretrained "
@@ -446,13 +452,18 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="continue the run in --out from its latest checkpoint (a new run if it has none)",
     )
-    train.add_argument("--steps", type=int, help="override [train] steps")
+    train.add_argument(
+        "--steps",
+        type=int,
+        help="override the run's steps ([train] steps; a teacher-student method's [ssl] steps)",
+    )
     train.add_argument(
         "--method",
         choices=METHODS,
-        help="override [ssl] method: labeled-only (pre-training), labeled-only-control (the "
-        "pre-trained model continued with an EMA teacher, no unlabeled data), confidence "
-        "thresholding or DetMatch",
+        help="override [ssl] method: labeled-only (pre-training, [train]'s schedule), "
+        "labeled-only-control (the pre-trained model continued with an EMA teacher, no "
+        "unlabeled data), confidence thresholding or DetMatch; the teacher-student methods "
+        "train [ssl] steps at [ssl] lr_2d / lr_3d, constant after [ssl] warmup_steps",
     )
     train.add_argument("--pretrained", help="override [ssl] pretrained: the labeled-only run")
     train.add_argument(

@@ -362,6 +362,16 @@ class SemiSupervisedConfig:
     # 3D labels projected; "labels-annotated": the label files' 2D boxes). "teacher" is the
     # method.
     consistency_targets: str = "teacher"
+    # The teacher-student stage's own schedule (every method but labeled-only), which
+    # `teacher_student_config` puts in [train] for the run: `steps` steps at these rates,
+    # constant after a `warmup_steps` linear warm-up; [train]'s steps, rates and schedules are
+    # pre-training's. Chosen on dev (BENCHMARKS.md, "The stage's length and learning rate"):
+    # 1,200 steps at 0.1x the benchmark pre-training's rates (the paper keeps its pre-training
+    # rates: at 1.0x DetMatch's 2D collapsed on dev).
+    steps: int = 1200
+    lr_2d: float = 0.002
+    lr_3d: float = 0.0003
+    warmup_steps: int = 50
     ema_offset: int = 100
     ema_max_decay: float = 0.999
     student_rotation: float = 0.7853981633974483
@@ -385,7 +395,8 @@ class SemiSupervisedConfig:
         check.one_of("consistency_reduction", CONSISTENCY_REDUCTIONS)
         check.one_of("pseudo_2d_normalizer", PSEUDO_2D_NORMALIZERS)
         check.one_of("consistency_targets", CONSISTENCY_TARGETS)
-        check.positive("ema_offset")
+        check.positive("ema_offset", "steps", "lr_2d", "lr_3d")
+        check.non_negative("warmup_steps")
         check.below_one("ema_max_decay")
         check.non_negative("student_rotation")
         check.positive("student_scale")
@@ -507,6 +518,20 @@ def read_config_text(name_or_path: str | Path) -> tuple[str, str]:
         f"no config file {str(name_or_path)!r} and no packaged config of that name; "
         f"packaged configs: {', '.join(available)}"
     )
+
+
+def teacher_student_config(config: ExperimentConfig) -> ExperimentConfig:
+    """The config a run of config.ssl.method trains with: for a teacher-student method, [ssl]'s
+    stage schedule (steps, rates, warm-up; constant rates) in place of [train]'s pre-training
+    one; a labeled-only config unchanged. Applying it twice changes nothing, so a run's saved
+    config can start the next run (a retraining round)."""
+    ssl = config.ssl
+    if ssl.method == "labeled-only":
+        return config
+    return config.replace(
+        "train", steps=ssl.steps, lr_2d=ssl.lr_2d, lr_3d=ssl.lr_3d,
+        warmup_steps=ssl.warmup_steps, schedule_2d="constant", schedule_3d="constant",
+    )  # fmt: skip
 
 
 def load_config(name_or_path: str | Path) -> ExperimentConfig:

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
-from detmatch.config import ExperimentConfig, load_config
+from detmatch.config import ExperimentConfig, load_config, teacher_student_config
 
 if TYPE_CHECKING:  # the command line imports this module for --help: no torch at import
     from detmatch.training.distributed import DistributedContext
@@ -140,11 +140,12 @@ def run_demo(
     with stage("pretrain", "labeled-only pre-training"):
         results.labeled_only = _train(config, out / "runs" / "pretrain", context)
     with stage("detmatch", "DetMatch from the pre-trained weights"):
-        detmatch_config = config.replace(
-            "ssl", method="detmatch", pretrained=str(out / "runs" / "pretrain")
-        ).replace(
-            "train", steps=results.size.detmatch_steps, eval_every=results.size.detmatch_steps
-        )
+        steps = results.size.detmatch_steps
+        detmatch_config = teacher_student_config(
+            config.replace(
+                "ssl", method="detmatch", pretrained=str(out / "runs" / "pretrain"), steps=steps
+            )
+        ).replace("train", eval_every=steps)
         results.detmatch = _train(detmatch_config, out / "runs" / "detmatch", context)
     with stage("compare", "labeled-only vs DetMatch on val"):
         from retrain.demo_report import verdict

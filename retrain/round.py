@@ -43,6 +43,7 @@ from detmatch.config import (
     config_from_dict,
     config_to_dict,
     load_config,
+    teacher_student_config,
 )
 from detmatch.files import write_json
 from detmatch.records import RecordError, from_plain, to_plain
@@ -361,18 +362,17 @@ def _plan(request: RoundRequest, log: Callable[[str], None]) -> RoundState | Rou
 
 
 def _training_config(config: ExperimentConfig, data_dir: Path, parent: Path) -> ExperimentConfig:
-    """The round's teacher-student run: its frames, [retrain] steps from the parent's models,
-    evaluated once, at the end."""
+    """The round's teacher-student run: its frames, [retrain] steps from the parent's models
+    at the [ssl] stage's rates, evaluated once, at the end."""
     steps = config.retrain.steps
     config = config.replace(
         "data", root=str(data_dir), train_split=LABELED_SPLIT, val_split=GATE_SPLIT
     )
-    config = config.replace("ssl", unlabeled_split=UNLABELED_SPLIT, pretrained=str(parent))
-    return config.replace(
-        "train",
-        steps=steps,
-        eval_every=steps,
-        checkpoint_every=min(config.train.checkpoint_every, steps),
+    config = config.replace(
+        "ssl", unlabeled_split=UNLABELED_SPLIT, pretrained=str(parent), steps=steps
+    )
+    return teacher_student_config(config).replace(
+        "train", eval_every=steps, checkpoint_every=min(config.train.checkpoint_every, steps)
     )
 
 

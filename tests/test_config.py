@@ -19,6 +19,7 @@ from detmatch.config import (
     load_config,
     packaged_configs,
     parse_override,
+    teacher_student_config,
 )
 from tests.conftest import REPO
 
@@ -175,6 +176,27 @@ def test_overrides_apply_together_and_are_validated():
         apply_overrides(base, ["train.steps=many"])
     with pytest.raises(ConfigError, match=r"\[detector2d\] depths must be a list of one entry"):
         apply_overrides(base, ["detector2d.widths=[8, 16, 32]"])
+
+
+def test_a_teacher_student_run_takes_the_ssl_stage_schedule_and_pretraining_keeps_train():
+    pretraining = apply_overrides(
+        load_config("ssl_cpu"), ["train.steps=3000", "ssl.steps=1200", "ssl.lr_2d=0.004"]
+    )
+    assert teacher_student_config(pretraining) == pretraining  # labeled-only
+    for method in ("labeled-only-control", "confidence", "detmatch"):
+        run = teacher_student_config(pretraining.replace("ssl", method=method))
+        train = run.train
+        assert (train.steps, train.lr_2d, train.lr_3d) == (1200, 0.004, run.ssl.lr_3d)
+        assert train.warmup_steps == run.ssl.warmup_steps
+        assert (train.schedule_2d, train.schedule_3d) == ("constant", "constant")
+        assert train.batch_size == pretraining.train.batch_size  # the rest of [train] stays
+        # A run's saved config can start the next run (a retraining round): no compounding.
+        assert teacher_student_config(run) == run
+    # The shipped benchmark config's stage is the one dev chose: 0.1x pre-training, 1,200 steps.
+    shipped = load_config("ssl_cpu")
+    assert shipped.ssl.steps == 1200
+    assert shipped.ssl.lr_2d == pytest.approx(shipped.train.lr_2d / 10)
+    assert shipped.ssl.lr_3d == pytest.approx(shipped.train.lr_3d / 10)
 
 
 def test_the_paper_preset_restores_the_published_method_whatever_the_config_says():

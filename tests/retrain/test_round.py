@@ -162,10 +162,11 @@ def test_a_regressing_round_is_published_but_not_promoted(tmp_path, round_data, 
                  "--store", str(store)]) == 0  # fmt: skip
     capsys.readouterr()
     # The round's teachers follow their students at once (EMA decay 0) and the 3D student
-    # takes steps 25 times the usual: the candidate's 3D boxes move.
+    # takes steps over 100 times the stage's ([ssl] lr_3d, the round's rate): the candidate's
+    # 3D boxes move.
     args = retrain_args(store, round_data, repository, "--set", "data.val_split=gate",
                         "--set", "retrain.steps=3", "--set", "retrain.max_map_drop=0",
-                        "--set", "train.lr_3d=0.05", "--set", "ssl.ema_max_decay=0",
+                        "--set", "ssl.lr_3d=0.05", "--set", "ssl.ema_max_decay=0",
                         "--set", "ssl.ema_offset=1")  # fmt: skip
     assert main(args) == 0
     out = capsys.readouterr().out

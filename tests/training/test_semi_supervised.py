@@ -209,6 +209,14 @@ def test_confidence_run(synth_root, tmp_path):
     config = json.loads((tmp_path / "conf" / "config.json").read_text())
     assert config["ssl"]["method"] == "confidence"
     assert load_config(TINY).ssl.tau_3d == 0.3 and load_config(TINY).ssl.tau_2d == 0.7
+    # The run trained on the [ssl] stage's schedule, not pre-training's [train] one.
+    pretraining = json.loads((tmp_path / "pre" / "config.json").read_text())["train"]
+    train, ssl = config["train"], config["ssl"]
+    assert (train["lr_2d"], train["lr_3d"]) == (ssl["lr_2d"], ssl["lr_3d"]) != (
+        pretraining["lr_2d"], pretraining["lr_3d"]
+    )  # fmt: skip
+    assert train["warmup_steps"] == ssl["warmup_steps"] and train["steps"] == 2  # --steps
+    assert train["schedule_2d"] == train["schedule_3d"] == "constant"
 
 
 def test_consistency_reductions_and_candidate_nms():

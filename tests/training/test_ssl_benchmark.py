@@ -11,12 +11,12 @@ from tests.conftest import REPO
 TINY = REPO / "configs" / "tiny.toml"
 
 
-def run_config(synth_root, tmp_path, method: str, lr_factor: float):
+def run_config(synth_root, tmp_path, method: str, lr_factor: float | None, steps: int | None = 40):
     """The benchmark's splits on a copy of the tiny synthetic set, and `method`'s run config."""
     data = tmp_path / "data"
     shutil.copytree(synth_root, data)
     args = argparse.Namespace(
-        data=str(data), fraction=0.25, seed=0, dev_fraction=0.25, ssl_steps=40,
+        data=str(data), fraction=0.25, seed=0, dev_fraction=0.25, ssl_steps=steps,
         ssl_lr_factor=lr_factor,
     )  # fmt: skip
     labeled, unlabeled, dev = splits(args)
@@ -34,6 +34,15 @@ def test_runs_start_from_the_pretraining_at_its_rates_times_the_factor(synth_roo
     assert config.train.steps == 40
     assert config.train.eval_every == 20  # dev halfway and at the end
     assert config.data.train_split == labeled
+
+
+def test_without_a_factor_or_steps_runs_take_the_configs_ssl_stage(synth_root, tmp_path):
+    _, _, base, config = run_config(synth_root, tmp_path, "confidence", lr_factor=None, steps=None)
+
+    assert (config.train.lr_2d, config.train.lr_3d) == (base.ssl.lr_2d, base.ssl.lr_3d)
+    assert config.train.steps == base.ssl.steps
+    assert config.train.warmup_steps == base.ssl.warmup_steps
+    assert config.train.eval_every == base.ssl.steps // 2
 
 
 def test_the_every_label_run_trains_on_labeled_and_unlabeled_frames_not_dev(synth_root, tmp_path):
