@@ -144,6 +144,7 @@ def _train(args: argparse.Namespace) -> int:
         apply_overrides,
         apply_preset,
         load_config,
+        refuse_pretraining_overrides,
         teacher_student_config,
     )
 
@@ -158,6 +159,7 @@ def _train(args: argparse.Namespace) -> int:
         config = config.replace("ssl", method=args.method)
     if args.pretrained:
         config = config.replace("ssl", pretrained=args.pretrained)
+    refuse_pretraining_overrides(config, args.set)
     config = teacher_student_config(config)
     if args.steps is not None:
         config = config.replace("train", steps=args.steps)

@@ -520,18 +520,40 @@ def read_config_text(name_or_path: str | Path) -> tuple[str, str]:
     )
 
 
+# The [train] keys a teacher-student run takes from its [ssl] stage (teacher_student_config):
+# the [ssl] key that sets each, or None for the schedules, which are constant in the stage.
+STAGE_KEYS: dict[str, str | None] = {
+    "steps": "steps", "lr_2d": "lr_2d", "lr_3d": "lr_3d", "warmup_steps": "warmup_steps",
+    "schedule_2d": None, "schedule_3d": None,
+}  # fmt: skip
+
+
 def teacher_student_config(config: ExperimentConfig) -> ExperimentConfig:
     """The config a run of config.ssl.method trains with: for a teacher-student method, [ssl]'s
     stage schedule (steps, rates, warm-up; constant rates) in place of [train]'s pre-training
     one; a labeled-only config unchanged. Applying it twice changes nothing, so a run's saved
     config can start the next run (a retraining round)."""
-    ssl = config.ssl
-    if ssl.method == "labeled-only":
+    if config.ssl.method == "labeled-only":
         return config
-    return config.replace(
-        "train", steps=ssl.steps, lr_2d=ssl.lr_2d, lr_3d=ssl.lr_3d,
-        warmup_steps=ssl.warmup_steps, schedule_2d="constant", schedule_3d="constant",
-    )  # fmt: skip
+    stage = {key: getattr(config.ssl, source) if source else "constant"
+             for key, source in STAGE_KEYS.items()}  # fmt: skip
+    return config.replace("train", **stage)
+
+
+def refuse_pretraining_overrides(config: ExperimentConfig, overrides: Sequence[str]) -> None:
+    """ConfigError for a `--set train.KEY` that a teacher-student run of config would not use
+    (KEY is one of STAGE_KEYS: the run trains [ssl]'s stage), naming what to set instead."""
+    if config.ssl.method == "labeled-only":
+        return
+    for text in overrides:
+        section, key, _ = parse_override(text)
+        if section == "train" and key in STAGE_KEYS:
+            source = STAGE_KEYS[key]
+            instead = f"set ssl.{source}" if source else "its rates are constant after the warm-up"
+            raise ConfigError(
+                f"--set {text!r}: [train] {key} is pre-training's; a {config.ssl.method} run "
+                f"trains the teacher-student stage of [ssl] ({instead})"
+            )
 
 
 def load_config(name_or_path: str | Path) -> ExperimentConfig:

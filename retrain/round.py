@@ -43,6 +43,7 @@ from detmatch.config import (
     config_from_dict,
     config_to_dict,
     load_config,
+    refuse_pretraining_overrides,
     teacher_student_config,
 )
 from detmatch.files import write_json
@@ -233,6 +234,7 @@ def resolve_config(
     resolved = apply_overrides(load_config(config) if config else parent_config, overrides)
     if resolved.ssl.method == "labeled-only":
         resolved = resolved.replace("ssl", method="detmatch")
+    refuse_pretraining_overrides(resolved, overrides)
     ours, theirs = config_to_dict(resolved), config_to_dict(parent_config)
     for section in ("detector2d", "detector3d"):
         for key, value in ours[section].items():

@@ -71,6 +71,11 @@ def test_config_errors_exit_2_naming_the_key_before_anything_is_written(tmp_path
         (["--set", "train.stepz=5"], r"unknown key 'stepz' in \[train\]"),
         (["--set", "steps=5"], r"expected section.key=value"),
         (["--preset", "papper"], r"invalid choice: 'papper'"),
+        # A teacher-student run trains [ssl]'s stage: pre-training's schedule keys are refused.
+        (
+            ["--method", "detmatch", "--pretrained", "runs/pre", "--set", "train.lr_2d=0.01"],
+            r"\[train\] lr_2d is pre-training's; a detmatch run .*\(set ssl.lr_2d\)",
+        ),
     ]
     for args, message in cases:
         result = run_cli("train", "--config", "tiny", "--out", str(out), *args)

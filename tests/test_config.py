@@ -19,6 +19,7 @@ from detmatch.config import (
     load_config,
     packaged_configs,
     parse_override,
+    refuse_pretraining_overrides,
     teacher_student_config,
 )
 from tests.conftest import REPO
@@ -192,6 +193,14 @@ def test_a_teacher_student_run_takes_the_ssl_stage_schedule_and_pretraining_keep
         assert train.batch_size == pretraining.train.batch_size  # the rest of [train] stays
         # A run's saved config can start the next run (a retraining round): no compounding.
         assert teacher_student_config(run) == run
+    # Overriding pre-training's schedule for a teacher-student run is refused, naming [ssl].
+    refuse_pretraining_overrides(pretraining, ["train.lr_2d=0.1"])  # labeled-only: its own
+    detmatch = pretraining.replace("ssl", method="detmatch")
+    refuse_pretraining_overrides(detmatch, ["train.batch_size=2", "ssl.lr_2d=0.1"])
+    with pytest.raises(ConfigError, match=r"\[train\] steps is pre-training's.*set ssl.steps"):
+        refuse_pretraining_overrides(detmatch, ["train.batch_size=2", "train.steps=10"])
+    with pytest.raises(ConfigError, match=r"schedule_3d .*constant after the warm-up"):
+        refuse_pretraining_overrides(detmatch, ["train.schedule_3d=onecycle"])
     # The shipped benchmark config's stage is the one dev chose: 0.1x pre-training, 1,200 steps.
     shipped = load_config("ssl_cpu")
     assert shipped.ssl.steps == 1200

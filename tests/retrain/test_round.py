@@ -164,6 +164,10 @@ def test_a_regressing_round_is_published_but_not_promoted(tmp_path, round_data, 
     # The round's teachers follow their students at once (EMA decay 0) and the 3D student
     # takes steps over 100 times the stage's ([ssl] lr_3d, the round's rate): the candidate's
     # 3D boxes move.
+    # A round trains the [ssl] stage: overriding pre-training's rate is refused, naming it.
+    assert main(retrain_args(store, round_data, repository, "--set", "train.lr_3d=0.05")) == 2
+    assert "set ssl.lr_3d" in capsys.readouterr().err
+    assert not (repository / "000002").exists()
     args = retrain_args(store, round_data, repository, "--set", "data.val_split=gate",
                         "--set", "retrain.steps=3", "--set", "retrain.max_map_drop=0",
                         "--set", "ssl.lr_3d=0.05", "--set", "ssl.ema_max_decay=0",
