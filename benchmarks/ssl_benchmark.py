@@ -14,8 +14,9 @@ weights) is made on dev; val is scored once, at the end, for the report.
 Stages (each skipped when its run directory already holds a finished checkpoint):
 1. labeled-only pre-training on the labeled split ([train] steps and schedules), evaluated on
    dev every [train] eval_every steps: the learning curve;
-2. each method of --methods for --ssl-steps from the pre-trained weights, at a constant
-   learning rate (the pre-training rates x --ssl-lr-factor) after a short warm-up:
+2. each method of --methods from the pre-trained weights on the config's teacher-student stage
+   ([ssl] steps at [ssl] lr_2d / lr_3d, constant after [ssl] warmup_steps; --ssl-steps and
+   the pre-training rates x --ssl-lr-factor override it):
    labeled-only-control (the same schedule and EMA teacher, labeled frames only),
    confidence thresholding, DetMatch and its ablations, and every-label (the control on every
    label of the labeled and unlabeled frames: what the stage gives if every pseudo-label is

@@ -160,9 +160,10 @@ def _train(args: argparse.Namespace) -> int:
     if args.pretrained:
         config = config.replace("ssl", pretrained=args.pretrained)
     refuse_pretraining_overrides(config, args.set)
+    if args.steps is not None:  # the run's length: the stage's for a teacher-student method
+        section = "train" if config.ssl.method == "labeled-only" else "ssl"
+        config = config.replace(section, steps=args.steps)
     config = teacher_student_config(config)
-    if args.steps is not None:
-        config = config.replace("train", steps=args.steps)
     if config.ssl.method != "labeled-only" and not config.ssl.pretrained and not args.resume:
         raise ValueError(
             f"--method {config.ssl.method} starts from pre-trained weights: pass --pretrained "
@@ -440,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="SECTION.KEY=VALUE",
         help="override any config key, e.g. train.steps=100, data.image_size=[320,96], "
-        "ssl.method=detmatch (repeatable; values are TOML literals, bare words are strings; "
+        "ssl.tau_hung=-2 (repeatable; values are TOML literals, bare words are strings; "
         "--preset, --data, --steps, --method and --pretrained apply after them)",
     )
     train.add_argument("--data", help="data set root; overrides [data] root")

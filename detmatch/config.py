@@ -367,10 +367,11 @@ class SemiSupervisedConfig:
     # constant after a `warmup_steps` linear warm-up; [train]'s steps, rates and schedules are
     # pre-training's. Chosen on dev (BENCHMARKS.md, "The stage's length and learning rate"):
     # 1,200 steps at 0.1x the benchmark pre-training's rates (the paper keeps its pre-training
-    # rates: at 1.0x DetMatch's 2D collapsed on dev).
+    # rates: at 1.0x DetMatch's 2D collapsed on dev). The rates default to 0.1x [train]'s
+    # defaults; every shipped config sets them at 0.1x its own.
     steps: int = 1200
-    lr_2d: float = 0.002
-    lr_3d: float = 0.0003
+    lr_2d: float = 0.001
+    lr_3d: float = 0.0002
     warmup_steps: int = 50
     ema_offset: int = 100
     ema_max_decay: float = 0.999

@@ -38,11 +38,13 @@ import torch.distributed as dist
 
 from detmatch.checkpoints import list_checkpoints
 from detmatch.config import (
+    ConfigError,
     ExperimentConfig,
     apply_overrides,
     config_from_dict,
     config_to_dict,
     load_config,
+    parse_override,
     refuse_pretraining_overrides,
     teacher_student_config,
 )
@@ -235,6 +237,9 @@ def resolve_config(
     if resolved.ssl.method == "labeled-only":
         resolved = resolved.replace("ssl", method="detmatch")
     refuse_pretraining_overrides(resolved, overrides)
+    for text in overrides:
+        if parse_override(text)[:2] == ("ssl", "steps"):
+            raise ConfigError(f"--set {text!r}: a round's length is [retrain] steps")
     ours, theirs = config_to_dict(resolved), config_to_dict(parent_config)
     for section in ("detector2d", "detector3d"):
         for key, value in ours[section].items():

@@ -167,6 +167,8 @@ def test_a_regressing_round_is_published_but_not_promoted(tmp_path, round_data, 
     # A round trains the [ssl] stage: overriding pre-training's rate is refused, naming it.
     assert main(retrain_args(store, round_data, repository, "--set", "train.lr_3d=0.05")) == 2
     assert "set ssl.lr_3d" in capsys.readouterr().err
+    assert main(retrain_args(store, round_data, repository, "--set", "ssl.steps=5")) == 2
+    assert "a round's length is [retrain] steps" in capsys.readouterr().err
     assert not (repository / "000002").exists()
     args = retrain_args(store, round_data, repository, "--set", "data.val_split=gate",
                         "--set", "retrain.steps=3", "--set", "retrain.max_map_drop=0",

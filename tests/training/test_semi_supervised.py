@@ -129,7 +129,7 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     pretrain = tmp_path / "pretrain.toml"
     pretrain.write_text(
         TINY.read_text()
-        .replace("steps = 6", "steps = 120")
+        .replace("[train]\nsteps = 6", "[train]\nsteps = 120")
         .replace("eval_every = 6", "eval_every = 1000")
         .replace("checkpoint_every = 3", "checkpoint_every = 1000")
         .replace("[train]\n", "[train]\nlr_2d = 0.02\nlr_3d = 0.004\nflip_probability = 0.0\n")
@@ -202,7 +202,13 @@ def test_semi_supervised_methods_need_pretrained_weights(synth_root, tmp_path, c
 
 
 def test_confidence_run(synth_root, tmp_path):
-    args = ["train", "--config", str(TINY), "--data", str(synth_root)]
+    scheduled = tmp_path / "scheduled.toml"  # pre-training with schedules, as ssl_cpu's
+    scheduled.write_text(
+        TINY.read_text().replace(
+            "[train]\n", '[train]\nschedule_2d = "step"\nschedule_3d = "onecycle"\n'
+        )
+    )
+    args = ["train", "--config", str(scheduled), "--data", str(synth_root)]
     assert main([*args, "--out", str(tmp_path / "pre"), "--steps", "2"]) == 0
     assert main([*args, "--out", str(tmp_path / "conf"), "--steps", "2", "--method", "confidence",
                  "--pretrained", str(tmp_path / "pre")]) == 0  # fmt: skip
@@ -215,8 +221,10 @@ def test_confidence_run(synth_root, tmp_path):
     assert (train["lr_2d"], train["lr_3d"]) == (ssl["lr_2d"], ssl["lr_3d"]) != (
         pretraining["lr_2d"], pretraining["lr_3d"]
     )  # fmt: skip
-    assert train["warmup_steps"] == ssl["warmup_steps"] and train["steps"] == 2  # --steps
+    assert train["warmup_steps"] == ssl["warmup_steps"] != pretraining["warmup_steps"]
+    assert train["steps"] == ssl["steps"] == 2  # --steps: the stage's length
     assert train["schedule_2d"] == train["schedule_3d"] == "constant"
+    assert (pretraining["schedule_2d"], pretraining["schedule_3d"]) == ("step", "onecycle")
 
 
 def test_consistency_reductions_and_candidate_nms():
