@@ -110,6 +110,10 @@ METHODS: dict[str, tuple[str, ...]] = {
     # Only the 3D teacher's: the LiDAR finds the people the camera misses, while the camera's
     # unmatched detections are mostly its false positives, which the 2D student should unlearn.
     "detmatch-ignore-3d": (DETMATCH, f"ssl.ignore_unmatched_score_3d={TAU_3D}"),
+    # In-view 3D teacher detections the camera did not confirm become LiDAR-only pseudo-labels
+    # above 0.6: on dev, the pre-trained teacher's 3D pseudo-label F1 peaks there in every class
+    # (BENCHMARKS.md, "LiDAR-only pseudo-labels in view").
+    "detmatch-lidar-confident": (DETMATCH, "ssl.tau_3d_unmatched=0.6"),
     # The authors' normalisations: per-frame consistency means, NMS on the student's candidates.
     "detmatch-frames-nms": (
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",

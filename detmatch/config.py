@@ -331,6 +331,10 @@ class SemiSupervisedConfig:
     detmatch_2d_pseudo_weight: float = 4.0
     # 3D boxes outside the camera's view fall back to confidence thresholding (tau_3d).
     fov_fallback: bool = True
+    # DetMatch: in-view 3D teacher detections the matching leaves unmatched whose max class
+    # probability exceeds this become LiDAR-only pseudo-labels (the camera misses occluded and
+    # small objects the LiDAR sees). 1.0: off (the paper: only matched objects in view).
+    tau_3d_unmatched: float = 1.0
     # DetMatch: the 3D (2D) teacher's unmatched detections whose max class probability exceeds
     # this are neither pseudo-labels nor background: the 3D (2D) student learns no background
     # around them. 1.0: off (the paper: every unmatched detection is background).
@@ -386,8 +390,9 @@ class SemiSupervisedConfig:
         check.one_of("method", METHODS)
         check.name("unlabeled_split")
         check.probability(
-            "tau_3d", "tau_2d", "ignore_unmatched_score_3d", "ignore_unmatched_score_2d"
-        )
+            "tau_3d", "tau_2d", "tau_3d_unmatched", "ignore_unmatched_score_3d",
+            "ignore_unmatched_score_2d",
+        )  # fmt: skip
         check.finite("tau_hung")
         check.non_negative("pseudo_label_weight", "detmatch_2d_pseudo_weight")
         check.non_negative(
@@ -596,7 +601,8 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "ssl.consistency_box=true", "ssl.consistency_class_weight=2.0",
         "ssl.consistency_l1_weight=20.0", "ssl.consistency_giou_weight=2.0",
         "ssl.consistency_reduction=pairs", "ssl.consistency_nms=false",
-        "ssl.pseudo_2d_normalizer=pseudo-labels", "ssl.ignore_unmatched_score_3d=1.0",
+        "ssl.pseudo_2d_normalizer=pseudo-labels", "ssl.tau_3d_unmatched=1.0",
+        "ssl.ignore_unmatched_score_3d=1.0",
         "ssl.ignore_unmatched_score_2d=1.0", "detector3d.refine=false",
     ),
 }  # fmt: skip

@@ -22,6 +22,7 @@ class Provenance(IntEnum):
 
     MATCHED = 0  # a 3D and a 2D teacher detection agreed (Hungarian cost <= tau_hung)
     LIDAR_ONLY_OUTSIDE_VIEW = 1  # a confident 3D detection the camera cannot see
+    LIDAR_ONLY_CONFIDENT = 2  # an unmatched 3D detection in view, above a high score
 
 
 @dataclass(frozen=True)
@@ -61,13 +62,16 @@ def match_detections(
     image_size: tuple[int, int],
     tau_hung: float = TAU_HUNG,
     tau_3d_outside_view: float | None = TAU_3D,
+    tau_3d_unmatched: float | None = None,
 ) -> MatchedLabels:
     """Hungarian-match a frame's 3D and 2D teacher detections.
 
     3D boxes in the camera's view are projected (DESIGN.md step 1) and matched with the 2D
     boxes; assigned pairs with cost <= tau_hung become labels. 3D boxes outside the view whose
     score exceeds tau_3d_outside_view are kept as LiDAR-only labels (None disables that
-    fallback). image_size is (W, H) of the original image.
+    fallback). In-view 3D boxes left unmatched whose score exceeds tau_3d_unmatched are kept as
+    LiDAR-only labels too (None: off, as in the paper): the LiDAR finds objects the camera
+    misses. image_size is (W, H) of the original image.
     """
     in_view = boxes_touching_image(detections_3d.boxes, calib, image_size)
     view_rows = np.flatnonzero(in_view)
@@ -84,11 +88,14 @@ def match_detections(
     index_2d = cols
     pair_cost = cost[rows, cols]
 
-    outside = np.zeros(0, dtype=np.int64)
-    if tau_3d_outside_view is not None:
-        outside = np.flatnonzero(~in_view & (detections_3d.scores > tau_3d_outside_view))
-    n_matched, n_outside = len(index_3d), len(outside)
-    all_3d = np.concatenate([index_3d, outside]).astype(np.int64)
+    outside = _above(detections_3d.scores, ~in_view, tau_3d_outside_view)
+    unmatched_in_view = in_view.copy()
+    unmatched_in_view[index_3d] = False
+    confident = _above(detections_3d.scores, unmatched_in_view, tau_3d_unmatched)
+    n_matched = len(index_3d)
+    lidar_only = np.concatenate([outside, confident])
+    n_outside = len(lidar_only)
+    all_3d = np.concatenate([index_3d, lidar_only]).astype(np.int64)
     absent = np.full(n_outside, -1, dtype=np.int64)
     return MatchedLabels(
         boxes_3d=detections_3d.boxes[all_3d].reshape(-1, 7),
@@ -105,12 +112,20 @@ def match_detections(
         provenance=np.concatenate(
             [
                 np.full(n_matched, Provenance.MATCHED, dtype=np.int64),
-                np.full(n_outside, Provenance.LIDAR_ONLY_OUTSIDE_VIEW, dtype=np.int64),
+                np.full(len(outside), Provenance.LIDAR_ONLY_OUTSIDE_VIEW, dtype=np.int64),
+                np.full(len(confident), Provenance.LIDAR_ONLY_CONFIDENT, dtype=np.int64),
             ]
         ),
         index_3d=all_3d,
         index_2d=np.concatenate([index_2d.astype(np.int64), absent]),
     )
+
+
+def _above(scores: np.ndarray, rows: np.ndarray, threshold: float | None) -> np.ndarray:
+    """Indices of the boolean rows whose score exceeds threshold (none for None)."""
+    if threshold is None:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(rows & (scores > threshold))
 
 
 def confident_detections(detections: Detections, threshold: float) -> Detections:

@@ -69,6 +69,7 @@ OUT_OF_RANGE = [
     ("ssl", "tau_3d", 1.2),
     ("ssl", "tau_2d", -0.7),
     ("ssl", "ignore_unmatched_score_3d", 1.5),
+    ("ssl", "tau_3d_unmatched", 1.1),
     ("ssl", "ignore_unmatched_score_2d", -0.1),
     ("ssl", "tau_hung", float("nan")),
     ("ssl", "pseudo_label_weight", -1.0),
@@ -215,7 +216,8 @@ def test_the_paper_preset_restores_the_published_method_whatever_the_config_says
         load_config("tiny"),
         ["ssl.consistency_box=false", "ssl.consistency_class=false", "ssl.tau_hung=-2.0",
          "ssl.consistency_reduction=frames", "detector3d.refine=true", "train.steps=7",
-         "ssl.ignore_unmatched_score_3d=0.3", "ssl.ignore_unmatched_score_2d=0.3"],
+         "ssl.ignore_unmatched_score_3d=0.3", "ssl.ignore_unmatched_score_2d=0.3",
+         "ssl.tau_3d_unmatched=0.6"],
     )  # fmt: skip
     paper = apply_preset(changed, "paper")
     assert paper.ssl.method == "detmatch"
@@ -224,6 +226,7 @@ def test_the_paper_preset_restores_the_published_method_whatever_the_config_says
     assert not paper.detector3d.refine and not paper.ssl.consistency_nms
     # The paper's rule: every unmatched detection is background.
     assert paper.ssl.ignore_unmatched_score_3d == paper.ssl.ignore_unmatched_score_2d == 1.0
+    assert paper.ssl.tau_3d_unmatched == 1.0  # and only matched objects in view are labels
     assert paper.train.steps == 7  # what the preset does not name stays
     assert set(PRESETS) >= {"paper"}
     with pytest.raises(ConfigError, match="unknown preset 'papper'; known presets: paper"):

@@ -44,6 +44,38 @@ def test_only_objects_both_sensors_agree_on_become_labels(calib):
     assert strict.matched.sum() == 0
 
 
+def test_confident_unmatched_3d_detections_in_view_can_become_lidar_only_labels(calib):
+    """tau_3d_unmatched keeps in-view 3D boxes the camera did not confirm when their score
+    exceeds it (after the matched rows and the outside-view ones); None keeps none."""
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    person = [12.0, -4.0, -0.8, 0.6, 0.6, 1.8, 0.0]  # in view; the camera misses it
+    faint = [20.0, 5.0, -0.8, 0.6, 0.6, 1.8, 0.0]
+    far_behind = [-20.0, 0.0, -0.9, 3.9, 1.6, 1.5, 0.0]
+    det_3d = detections(
+        [car, person, faint, far_behind],
+        [[0.8, 0.1, 0.1], [0.1, 0.7, 0.1], [0.1, 0.4, 0.1], [0.5, 0.1, 0.1]],
+    )
+    det_2d = detections([project_boxes_to_image(np.array([car]), calib, IMAGE)[0]],
+                        [[0.85, 0.05, 0.1]])  # fmt: skip
+
+    labels = match_detections(det_3d, det_2d, calib, IMAGE, tau_3d_unmatched=0.6)
+    assert labels.provenance.tolist() == [
+        Provenance.MATCHED, Provenance.LIDAR_ONLY_OUTSIDE_VIEW, Provenance.LIDAR_ONLY_CONFIDENT,
+    ]  # fmt: skip
+    assert labels.index_3d.tolist() == [0, 3, 1] and labels.index_2d.tolist() == [0, -1, -1]
+    assert labels.class_3d.tolist() == [0, 0, 1] and labels.class_2d.tolist() == [0, -1, -1]
+    assert np.isnan(labels.boxes_2d[2]).all() and np.isnan(labels.cost[2])
+    # The faint one (0.4) stays out at 0.6 and comes in at 0.3; None is the paper's rule.
+    assert match_detections(
+        det_3d, det_2d, calib, IMAGE, tau_3d_unmatched=0.3
+    ).index_3d.tolist() == [0, 3, 1, 2]
+    assert match_detections(det_3d, det_2d, calib, IMAGE).index_3d.tolist() == [0, 3]
+    # A box the matching paired is never counted twice, however confident.
+    assert match_detections(
+        det_3d, det_2d, calib, IMAGE, tau_3d_unmatched=0.0
+    ).index_3d.tolist() == [0, 3, 1, 2]
+
+
 def test_no_detections(calib):
     empty = Detections(np.zeros((0, 7)), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
     empty_2d = Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
@@ -97,3 +129,9 @@ def test_detmatch_can_ignore_confident_unmatched_detections(calib):
     lidar_only = rule(0.3, 1.0).frame_labels(det_2d, det_3d, calib, IMAGE)
     np.testing.assert_array_equal(lidar_only.ignore_3d.boxes, [person])
     assert len(lidar_only.ignore_2d) == 0
+    # A LiDAR-only label is not also an ignore region.
+    kept = DetMatchRule(-1.5, 0.3, 4.0, False, tau_3d_unmatched=0.5, ignore_score_3d=0.3)
+    kept_labels = kept.frame_labels(det_2d, det_3d, calib, IMAGE)
+    np.testing.assert_array_equal(kept_labels.labels_3d.boxes, [car, person])
+    assert kept_labels.labels_3d.classes.tolist() == [0, 1] and len(kept_labels.ignore_3d) == 0
+    np.testing.assert_array_equal(kept_labels.labels_2d.boxes, labels.labels_2d.boxes)

@@ -80,6 +80,7 @@ def _unmatched(detections: Detections, used: np.ndarray, threshold: float) -> La
 @dataclass(frozen=True)
 class DetMatchRule(PseudoLabelRule):
     """tau_3d_outside_view: the confidence fallback for 3D boxes the camera cannot see (None:
+    off); tau_3d_unmatched: the one for in-view 3D boxes the 2D teacher did not confirm (None:
     off); ignore_score_3d / ignore_score_2d: that teacher's unmatched detections above it become
     ignore regions (1.0: none, every unmatched detection is background as in the paper)."""
 
@@ -87,13 +88,14 @@ class DetMatchRule(PseudoLabelRule):
     tau_3d_outside_view: float | None
     weight_2d: float
     consistency: bool
+    tau_3d_unmatched: float | None = None
     ignore_score_3d: float = 1.0
     ignore_score_2d: float = 1.0
 
     def frame_labels(self, detections_2d, detections_3d, calib, image_size) -> FramePseudoLabels:
         matched = match_detections(
             detections_3d, detections_2d, calib, image_size, self.tau_hung,
-            self.tau_3d_outside_view,
+            self.tau_3d_outside_view, self.tau_3d_unmatched,
         )  # fmt: skip
         pairs = matched.matched
         rows_2d = matched.index_2d[pairs]
@@ -121,6 +123,7 @@ def pseudo_label_rule(ssl: SemiSupervisedConfig) -> PseudoLabelRule:
             tau_3d_outside_view=ssl.tau_3d if ssl.fov_fallback else None,
             weight_2d=ssl.detmatch_2d_pseudo_weight,
             consistency=ssl.consistency_class or ssl.consistency_box,
+            tau_3d_unmatched=ssl.tau_3d_unmatched if ssl.tau_3d_unmatched < 1.0 else None,
             ignore_score_3d=ssl.ignore_unmatched_score_3d,
             ignore_score_2d=ssl.ignore_unmatched_score_2d,
         ),
