@@ -385,6 +385,11 @@ class SemiSupervisedConfig:
 
     SECTION: ClassVar[str] = "ssl"
 
+    @property
+    def unmatched_3d_threshold(self) -> float | None:
+        """tau_3d_unmatched as `match_detections` takes it: None when off (1.0)."""
+        return self.tau_3d_unmatched if self.tau_3d_unmatched < 1.0 else None
+
     def __post_init__(self) -> None:
         check = _Checks(self)
         check.one_of("method", METHODS)

@@ -126,6 +126,8 @@ def build_manifest(
             # The field-of-view fallback: confident 3D boxes outside the image (None: off).
             tau_3d_outside_view=config.ssl.tau_3d if config.ssl.fov_fallback else None,
             function="detmatch.pseudo_labels.match_detections",
+            # In-view 3D boxes the camera did not confirm, above this score (None: off).
+            tau_3d_unmatched=config.ssl.unmatched_3d_threshold,
         ),
         training=TrainingRecord(
             checkpoint=str(checkpoint_file.resolve()),

@@ -91,6 +91,7 @@ class Labeler:
         self.score_threshold_3d = spec_3d.score_threshold
         self.tau_hung = self.manifest.matching.tau_hung
         self.tau_3d_outside_view = self.manifest.matching.tau_3d_outside_view
+        self.tau_3d_unmatched = self.manifest.matching.tau_3d_unmatched
         self.settings = settings or SessionSettings()
         self.session_2d = make_session(self.path / spec_2d.file, self.settings)
         self.session_3d = make_session(self.path / spec_3d.file, self.settings)
@@ -168,13 +169,16 @@ class Labeler:
         score_threshold_3d: float | None = None,
         tau_3d_outside_view: float | None = None,
         outside_view_fallback: bool = True,
+        tau_3d_unmatched: float | None = None,
     ) -> FrameLabels:
         """Label one paired frame.
 
         image: (H, W, 3) uint8 RGB; points: (N, 4) float32 LiDAR x, y, z, intensity;
         calib: the frame's calibration. Thresholds default to the manifest's; with
         outside_view_fallback False (or no tau_3d_outside_view here or in the manifest) no
-        LiDAR-only labels are made. Raises ValueError naming the input and the problem for
+        LiDAR-only labels are made outside the view; in view, unmatched 3D boxes above
+        tau_3d_unmatched (here or in the manifest; neither: none) become LiDAR-only labels.
+        Raises ValueError naming the input and the problem for
         malformed inputs.
         """
         start = time.perf_counter()
@@ -193,6 +197,11 @@ class Labeler:
             tau_outside = _probability(
                 "tau_3d_outside_view", tau_3d_outside_view, self.tau_3d_outside_view
             )
+        tau_unmatched = None
+        if tau_3d_unmatched is not None or self.tau_3d_unmatched is not None:
+            tau_unmatched = _probability(
+                "tau_3d_unmatched", tau_3d_unmatched, self.tau_3d_unmatched
+            )
 
         timings: dict[str, float] = {}
         mark = time.perf_counter()
@@ -204,8 +213,9 @@ class Labeler:
         detections_3d = detections_3d[detections_3d.scores > threshold_3d]
         image_size = (int(image.shape[1]), int(image.shape[0]))
         labels = match_detections(
-            detections_3d, detections_2d, calib, image_size, tau_hung, tau_outside
-        )
+            detections_3d, detections_2d, calib, image_size, tau_hung, tau_outside,
+            tau_unmatched,
+        )  # fmt: skip
         end = time.perf_counter()
         timings["matching"] = end - mark
         timings["total"] = end - start
@@ -221,6 +231,7 @@ class Labeler:
                 "score_threshold_2d": threshold_2d,
                 "score_threshold_3d": threshold_3d,
                 "tau_3d_outside_view": tau_outside,
+                "tau_3d_unmatched": tau_unmatched,
             },
             timings=timings,
         )

@@ -168,16 +168,20 @@ class Models:
 @dataclass(frozen=True)
 class MatchingSpec:
     """tau_hung: the matching threshold; tau_3d_outside_view: the score above which 3D boxes
-    outside the camera's view become LiDAR-only labels (None: no fallback)."""
+    outside the camera's view become LiDAR-only labels (None: no fallback); tau_3d_unmatched:
+    the score above which in-view 3D boxes left unmatched do (None, or absent from older
+    manifests: only matched objects in view)."""
 
     tau_hung: float
     tau_3d_outside_view: float | None
     function: str
+    tau_3d_unmatched: float | None = None
 
     def __post_init__(self) -> None:
-        outside = self.tau_3d_outside_view
-        if outside is not None and not 0.0 <= outside < 1.0:
-            raise ValueError(f"tau_3d_outside_view must be in [0, 1) or null, got {outside}")
+        for name in ("tau_3d_outside_view", "tau_3d_unmatched"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value < 1.0:
+                raise ValueError(f"{name} must be in [0, 1) or null, got {value}")
 
 
 @dataclass(frozen=True)

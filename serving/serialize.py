@@ -20,6 +20,7 @@ from serving.labeler import FrameLabels
 PROVENANCE_NAMES = {
     Provenance.MATCHED: "matched",
     Provenance.LIDAR_ONLY_OUTSIDE_VIEW: "lidar_only_outside_view",
+    Provenance.LIDAR_ONLY_CONFIDENT: "lidar_only_confident",
 }
 BOX_3D_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
 BOX_2D_FIELDS = ("x1", "y1", "x2", "y2")

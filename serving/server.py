@@ -201,6 +201,7 @@ class AutoLabelerServicer(pb2_grpc.AutoLabelerServicer):
             score_threshold_3d=info["score_threshold_3d"],
             tau_hung=info["tau_hung"],
             tau_3d_outside_view=info["tau_3d_outside_view"],
+            tau_3d_unmatched=info["tau_3d_unmatched"],
             metrics_json=json.dumps(info["metrics"]),
         )
 

@@ -199,6 +199,7 @@ class LabelingService:
             "score_threshold_3d": labeler.score_threshold_3d,
             "tau_hung": labeler.tau_hung,
             "tau_3d_outside_view": labeler.tau_3d_outside_view,
+            "tau_3d_unmatched": labeler.tau_3d_unmatched,
             "metrics": labeler.manifest.training.metrics,
         }
 

@@ -123,7 +123,7 @@ def pseudo_label_rule(ssl: SemiSupervisedConfig) -> PseudoLabelRule:
             tau_3d_outside_view=ssl.tau_3d if ssl.fov_fallback else None,
             weight_2d=ssl.detmatch_2d_pseudo_weight,
             consistency=ssl.consistency_class or ssl.consistency_box,
-            tau_3d_unmatched=ssl.tau_3d_unmatched if ssl.tau_3d_unmatched < 1.0 else None,
+            tau_3d_unmatched=ssl.unmatched_3d_threshold,
             ignore_score_3d=ssl.ignore_unmatched_score_3d,
             ignore_score_2d=ssl.ignore_unmatched_score_2d,
         ),

@@ -61,6 +61,10 @@ def test_manifest_describes_models_thresholds_training_and_files(exported_reposi
     assert spec_2d.score_threshold == spec_3d.score_threshold == 0.1
     assert manifest.matching.tau_hung == -1.5
     assert manifest.matching.tau_3d_outside_view == 0.3
+    # The training's in-view LiDAR-only rule, as match_detections takes it (1.0 in the config:
+    # off, None).
+    unmatched = manifest.training.config["ssl"]["tau_3d_unmatched"]
+    assert manifest.matching.tau_3d_unmatched == (None if unmatched == 1.0 else unmatched)
     training = manifest.training
     assert training.step == 6 and tuple(training.data["classes"]) == manifest.classes
     assert len(training.checkpoint_sha256) == 64

@@ -54,8 +54,8 @@ def assert_same_labels(got: MatchedLabels, expected: MatchedLabels, atol: float 
 # are too poor to match at tau_hung = -1.5, so the second case is what exercises matching.
 @pytest.mark.parametrize(
     "overrides",
-    [{}, {"tau_hung": 50.0, "tau_3d_outside_view": 0.1}],
-    ids=["manifest", "permissive"],
+    [{}, {"tau_hung": 50.0, "tau_3d_outside_view": 0.1}, {"tau_3d_unmatched": 0.1}],
+    ids=["manifest", "permissive", "lidar-only-in-view"],
 )
 def test_labels_equal_the_pytorch_pipeline(
     exported_repository, trained_checkpoint, synth_root, overrides
@@ -71,12 +71,13 @@ def test_labels_equal_the_pytorch_pipeline(
     grid = model_3d.grid
     tau_hung = overrides.get("tau_hung", -1.5)
     tau_outside = overrides.get("tau_3d_outside_view", 0.3)
+    tau_unmatched = overrides.get("tau_3d_unmatched")  # the manifest's: off
     provenances, tie_affected = [], []
     for frame in _frames(synth_root):
         sample = make_sample(frame, config.data.classes, config.data.image_size, grid, flip=False)
         detections_2d, detections_3d = predict_batch(model_2d, model_3d, collate([sample]))[0]
         expected = match_detections(detections_3d, detections_2d, frame.calib, frame.image_size,
-                                    tau_hung, tau_outside)  # fmt: skip
+                                    tau_hung, tau_outside, tau_unmatched)  # fmt: skip
         result = labeler.label(frame.image, frame.points, frame.calib, **overrides)
         parity = check_parity(labeler.session_2d, labeler.session_3d, model_2d, model_3d, config,
                               [("frame", frame)], Tolerance())  # fmt: skip
@@ -90,9 +91,11 @@ def test_labels_equal_the_pytorch_pipeline(
         assert_same_labels(result.labels, expected)
         provenances.extend(result.labels.provenance.tolist())
     assert len(tie_affected) <= 2, tie_affected
-    if overrides:
+    if "tau_hung" in overrides:
         assert Provenance.MATCHED in provenances
         assert Provenance.LIDAR_ONLY_OUTSIDE_VIEW in provenances
+    expected_in_view = Provenance.LIDAR_ONLY_CONFIDENT in provenances
+    assert expected_in_view == ("tau_3d_unmatched" in overrides)
 
 
 def test_label_reports_version_thresholds_and_timings(exported_repository, synth_root):
@@ -107,6 +110,7 @@ def test_label_reports_version_thresholds_and_timings(exported_repository, synth
         "score_threshold_2d": 0.2,
         "score_threshold_3d": 0.1,
         "tau_3d_outside_view": None,
+        "tau_3d_unmatched": None,
     }
     assert (result.detections_2d.scores > 0.2).all()
     assert (result.labels.provenance == Provenance.MATCHED).all()

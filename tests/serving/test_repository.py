@@ -132,6 +132,11 @@ def test_the_manifest_round_trips_and_its_errors_name_the_field(tmp_path):
     ):
         Manifest.from_json(data)
     data = json.loads((path / "manifest.json").read_text())
+    data["matching"]["tau_3d_unmatched"] = 1.0
+    with pytest.raises(ManifestError, match=r"matching: tau_3d_unmatched must be in \[0, 1\)"):
+        Manifest.from_json(data)
+    del data["matching"]["tau_3d_unmatched"]  # a manifest from before the field: off
+    assert Manifest.from_json(data).matching.tau_3d_unmatched is None
     data["matching"]["tau_3d_outside_view"] = 1.5
     with pytest.raises(ManifestError, match=r"matching: tau_3d_outside_view must be in \[0, 1\)"):
         Manifest.from_json(data)
