@@ -221,13 +221,16 @@ def pseudo_label_sets(
     in_view = boxes_touching_image(det_3d.boxes, sample.calib, size)
     confident_3d = confident_detections(det_3d[in_view], ssl.tau_3d)
     confident_2d = confident_detections(det_2d, ssl.tau_2d)
-    matched = match_detections(det_3d, det_2d, sample.calib, size, ssl.tau_hung, None)
+    matched = match_detections(
+        det_3d, det_2d, sample.calib, size, ssl.tau_hung, None, ssl.unmatched_3d_threshold
+    )
+    pairs = matched.matched  # the 2D labels: LiDAR-only rows have none
     sets = {}
     for method, (b3, c3, s3, b2, c2, s2) in {
         "confidence": (confident_3d.boxes, confident_3d.classes, confident_3d.scores,
                        confident_2d.boxes, confident_2d.classes, confident_2d.scores),
         "detmatch": (matched.boxes_3d, matched.class_3d, matched.score_3d,
-                     matched.boxes_2d, matched.class_2d, matched.score_2d),
+                     matched.boxes_2d[pairs], matched.class_2d[pairs], matched.score_2d[pairs]),
     }.items():  # fmt: skip
         names = [classes[c] for c in c3] + [classes[c] for c in c2]
         boxes_3d = np.concatenate([b3.reshape(-1, 7), np.zeros((len(c2), 7))])

@@ -58,3 +58,39 @@ def test_the_every_label_run_trains_on_labeled_and_unlabeled_frames_not_dev(synt
     assert every == set(read_image_set(sets / "train.txt")) - frames[dev]
     assert config.ssl.method == "labeled-only-control"  # the stage's schedule, no pseudo-labels
     assert config.data.val_split == dev
+
+
+def test_the_pseudo_label_report_follows_the_configs_detmatch_rule():
+    """With tau_3d_unmatched on, the report's DetMatch 3D labels add the in-view box the camera
+    missed; its 2D labels stay the matched ones (a LiDAR-only label has no 2D box)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from benchmarks.ssl_benchmark import pseudo_label_sets
+    from detmatch.data.kitti import read_calib
+    from detmatch.geometry import project_boxes_to_image
+    from detmatch.structures import Detections
+    from tests.conftest import KITTI_SAMPLE
+
+    calib = read_calib(KITTI_SAMPLE / "training" / "calib" / "000001.txt")
+    image = (1242, 375)
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    person = [12.0, -4.0, -0.8, 0.6, 0.6, 1.8, 0.0]
+    probabilities_3d = np.array([[0.8, 0.1, 0.1], [0.1, 0.7, 0.1]])
+    det_3d = Detections(np.array([car, person]), probabilities_3d.max(1),
+                        probabilities_3d.argmax(1), probabilities_3d)  # fmt: skip
+    det_2d = Detections(project_boxes_to_image(np.array([car]), calib, image), np.array([0.85]),
+                        np.array([0]), np.array([[0.85, 0.05, 0.1]]))  # fmt: skip
+    sample = SimpleNamespace(calib=calib, image_transform=SimpleNamespace(original_size=image))
+    classes = ("Car", "Pedestrian", "Cyclist")
+
+    def detmatch_rows(config):
+        rows = pseudo_label_sets(det_2d, det_3d, sample, classes, config)["detmatch"]
+        in_3d = rows.boxes_3d.data.any(axis=1)
+        return sorted(rows.names[in_3d]), sorted(rows.names[~in_3d])
+
+    base = load_config(TINY)
+    assert detmatch_rows(base.replace("ssl", tau_3d_unmatched=1.0)) == (["Car"], ["Car"])
+    lidar_only = base.replace("ssl", tau_3d_unmatched=0.6)
+    assert detmatch_rows(lidar_only) == (["Car", "Pedestrian"], ["Car"])
