@@ -114,6 +114,11 @@ METHODS: dict[str, tuple[str, ...]] = {
     # above 0.6: on dev, the pre-trained teacher's 3D pseudo-label F1 peaks there in every class
     # (BENCHMARKS.md, "LiDAR-only pseudo-labels in view").
     "detmatch-lidar-confident": (DETMATCH, "ssl.tau_3d_unmatched=0.6"),
+    # The same labels, with the 2D side protected: their image projections are not taught as
+    # background to the 2D student (the camera was silent where the LiDAR is confident).
+    "detmatch-lidar-confident-2d-ignore": (
+        DETMATCH, "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=true",
+    ),
     # The authors' normalisations: per-frame consistency means, NMS on the student's candidates.
     "detmatch-frames-nms": (
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",

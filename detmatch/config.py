@@ -335,6 +335,10 @@ class SemiSupervisedConfig:
     # probability exceeds this become LiDAR-only pseudo-labels (the camera misses occluded and
     # small objects the LiDAR sees). 1.0: off (the paper: only matched objects in view).
     tau_3d_unmatched: float = 1.0
+    # DetMatch: the image projections of those LiDAR-only labels become ignore regions of the
+    # 2D student (no background where the LiDAR is confident and the camera was silent); needs
+    # tau_3d_unmatched < 1. Off: the paper's rule (every unmatched place is 2D background).
+    lidar_only_ignore_2d: bool = False
     # DetMatch: the 3D (2D) teacher's unmatched detections whose max class probability exceeds
     # this are neither pseudo-labels nor background: the 3D (2D) student learns no background
     # around them. 1.0: off (the paper: every unmatched detection is background).
@@ -413,6 +417,8 @@ class SemiSupervisedConfig:
         check.positive("student_scale")
         if self.student_scale[0] > self.student_scale[1]:
             check.fail("student_scale", "[low, high] with low <= high")
+        if self.lidar_only_ignore_2d and self.unmatched_3d_threshold is None:
+            check.fail("lidar_only_ignore_2d", "false while tau_3d_unmatched is 1.0 (no LiDAR-only labels)")
 
 
 # How a retraining round uses the label store's frames: "pool" (they join the unlabeled pool
@@ -607,6 +613,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "ssl.consistency_l1_weight=20.0", "ssl.consistency_giou_weight=2.0",
         "ssl.consistency_reduction=pairs", "ssl.consistency_nms=false",
         "ssl.pseudo_2d_normalizer=pseudo-labels", "ssl.tau_3d_unmatched=1.0",
+        "ssl.lidar_only_ignore_2d=false",
         "ssl.ignore_unmatched_score_3d=1.0",
         "ssl.ignore_unmatched_score_2d=1.0", "detector3d.refine=false",
     ),

@@ -94,6 +94,14 @@ def test_out_of_range_values_are_refused_naming_section_and_key(section, key, va
         config_from_dict(raw)
 
 
+def test_lidar_only_2d_ignore_regions_need_lidar_only_labels():
+    tiny = load_config("tiny")
+    with pytest.raises(ConfigError, match=r"\[ssl\] lidar_only_ignore_2d must be false while"):
+        apply_overrides(tiny, ["ssl.lidar_only_ignore_2d=true"])
+    both = apply_overrides(tiny, ["ssl.lidar_only_ignore_2d=true", "ssl.tau_3d_unmatched=0.6"])
+    assert both.ssl.lidar_only_ignore_2d and both.ssl.unmatched_3d_threshold == 0.6
+
+
 def test_code_paths_get_the_same_checks():
     with pytest.raises(ConfigError, match=r"\[train\] steps must be > 0, got -5"):
         TrainConfig(steps=-5)
@@ -217,7 +225,7 @@ def test_the_paper_preset_restores_the_published_method_whatever_the_config_says
         ["ssl.consistency_box=false", "ssl.consistency_class=false", "ssl.tau_hung=-2.0",
          "ssl.consistency_reduction=frames", "detector3d.refine=true", "train.steps=7",
          "ssl.ignore_unmatched_score_3d=0.3", "ssl.ignore_unmatched_score_2d=0.3",
-         "ssl.tau_3d_unmatched=0.6"],
+         "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=true"],
     )  # fmt: skip
     paper = apply_preset(changed, "paper")
     assert paper.ssl.method == "detmatch"
@@ -227,6 +235,7 @@ def test_the_paper_preset_restores_the_published_method_whatever_the_config_says
     # The paper's rule: every unmatched detection is background.
     assert paper.ssl.ignore_unmatched_score_3d == paper.ssl.ignore_unmatched_score_2d == 1.0
     assert paper.ssl.tau_3d_unmatched == 1.0  # and only matched objects in view are labels
+    assert not paper.ssl.lidar_only_ignore_2d
     assert paper.train.steps == 7  # what the preset does not name stays
     assert set(PRESETS) >= {"paper"}
     with pytest.raises(ConfigError, match="unknown preset 'papper'; known presets: paper"):

@@ -135,3 +135,40 @@ def test_detmatch_can_ignore_confident_unmatched_detections(calib):
     np.testing.assert_array_equal(kept_labels.labels_3d.boxes, [car, person])
     assert kept_labels.labels_3d.classes.tolist() == [0, 1] and len(kept_labels.ignore_3d) == 0
     np.testing.assert_array_equal(kept_labels.labels_2d.boxes, labels.labels_2d.boxes)
+
+
+def test_detmatch_can_keep_lidar_only_labels_out_of_the_2d_background(calib):
+    """lidar_only_ignore_2d: the in-view LiDAR-only labels' image projections join the 2D ignore
+    regions (the 2D student learns no background where only the LiDAR saw something); the
+    2D labels stay the matched pairs and outside-view fallbacks, not in the image, add none."""
+    from detmatch.training.rules import DetMatchRule
+
+    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
+    person = [12.0, -4.0, -0.8, 0.6, 0.6, 1.8, 0.0]  # in view; the camera misses it
+    far_behind = [-20.0, 0.0, -0.9, 3.9, 1.6, 1.5, 0.0]
+    det_3d = detections([car, person, far_behind],
+                        [[0.8, 0.1, 0.1], [0.1, 0.7, 0.1], [0.5, 0.1, 0.1]])  # fmt: skip
+    car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)[0]
+    rider_2d = [100.0, 150.0, 130.0, 230.0]  # unmatched 2D, above the 2D ignore score
+    det_2d = detections([car_2d, rider_2d], [[0.85, 0.05, 0.1], [0.1, 0.1, 0.5]])
+
+    def rule(protect, ignore_score_2d=1.0):
+        return DetMatchRule(-1.5, 0.3, 4.0, False, tau_3d_unmatched=0.6,
+                            ignore_score_2d=ignore_score_2d, lidar_only_ignore_2d=protect)  # fmt: skip
+
+    protected = rule(True).frame_labels(det_2d, det_3d, calib, IMAGE)
+    person_2d = project_boxes_to_image(np.array([person]), calib, IMAGE)
+    assert (person_2d[:, 2:] > person_2d[:, :2]).all()  # it lands in the image
+    np.testing.assert_allclose(protected.ignore_2d.boxes, person_2d)
+    assert protected.ignore_2d.classes.tolist() == [1]
+    np.testing.assert_allclose(protected.ignore_2d.probabilities, [[0.1, 0.7, 0.1]])
+    np.testing.assert_array_equal(protected.labels_2d.boxes, [car_2d])
+    np.testing.assert_array_equal(protected.labels_3d.boxes, [car, far_behind, person])
+    assert len(protected.ignore_3d) == 0
+    plain = rule(False).frame_labels(det_2d, det_3d, calib, IMAGE)
+    assert len(plain.ignore_2d) == 0
+    np.testing.assert_array_equal(plain.labels_3d.boxes, protected.labels_3d.boxes)
+    # Beside the 2D teacher's own unmatched detections when both are on.
+    both = rule(True, ignore_score_2d=0.3).frame_labels(det_2d, det_3d, calib, IMAGE)
+    np.testing.assert_allclose(both.ignore_2d.boxes, [rider_2d, person_2d[0]])
+    assert both.ignore_2d.classes.tolist() == [2, 1]

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from detmatch.config import SemiSupervisedConfig
-from detmatch.pseudo_labels import confident_detections, match_detections
+from detmatch.geometry import project_boxes_to_image
+from detmatch.pseudo_labels import Provenance, confident_detections, match_detections
 from detmatch.structures import Calibration, Detections, LabeledBoxes
 
 
@@ -77,12 +78,30 @@ def _unmatched(detections: Detections, used: np.ndarray, threshold: float) -> La
     return _labels(detections[rest & (detections.scores > threshold)])
 
 
+def _with_projections(
+    ignore_2d: LabeledBoxes,
+    labels_3d: LabeledBoxes,
+    rows: np.ndarray,
+    calib: Calibration,
+    image_size: tuple[int, int],
+) -> LabeledBoxes:
+    """The 2D ignore regions plus the image projections of the 3D labels in the boolean rows."""
+    projected = project_boxes_to_image(labels_3d.boxes[rows], calib, image_size)
+    return LabeledBoxes(
+        np.concatenate([ignore_2d.boxes, projected]),
+        np.concatenate([ignore_2d.classes, labels_3d.classes[rows]]),
+        np.concatenate([ignore_2d.probabilities, labels_3d.probabilities[rows]]),
+    )
+
+
 @dataclass(frozen=True)
 class DetMatchRule(PseudoLabelRule):
     """tau_3d_outside_view: the confidence fallback for 3D boxes the camera cannot see (None:
     off); tau_3d_unmatched: the one for in-view 3D boxes the 2D teacher did not confirm (None:
     off); ignore_score_3d / ignore_score_2d: that teacher's unmatched detections above it become
-    ignore regions (1.0: none, every unmatched detection is background as in the paper)."""
+    ignore regions (1.0: none, every unmatched detection is background as in the paper);
+    lidar_only_ignore_2d: the in-view LiDAR-only labels' image projections become 2D ignore
+    regions too (the camera was silent where the LiDAR is confident)."""
 
     tau_hung: float
     tau_3d_outside_view: float | None
@@ -91,6 +110,7 @@ class DetMatchRule(PseudoLabelRule):
     tau_3d_unmatched: float | None = None
     ignore_score_3d: float = 1.0
     ignore_score_2d: float = 1.0
+    lidar_only_ignore_2d: bool = False
 
     def frame_labels(self, detections_2d, detections_3d, calib, image_size) -> FramePseudoLabels:
         matched = match_detections(
@@ -103,14 +123,21 @@ class DetMatchRule(PseudoLabelRule):
             matched.boxes_2d[pairs], matched.class_2d[pairs],
             detections_2d.probabilities[rows_2d],
         )  # fmt: skip
+        labels_3d = LabeledBoxes(
+            matched.boxes_3d, matched.class_3d, detections_3d.probabilities[matched.index_3d]
+        )
+        ignore_2d = _unmatched(detections_2d, rows_2d, self.ignore_score_2d)
+        if self.lidar_only_ignore_2d:
+            ignore_2d = _with_projections(
+                ignore_2d, labels_3d, matched.provenance == Provenance.LIDAR_ONLY_CONFIDENT,
+                calib, image_size,
+            )  # fmt: skip
         return FramePseudoLabels(
-            labels_3d=LabeledBoxes(
-                matched.boxes_3d, matched.class_3d, detections_3d.probabilities[matched.index_3d]
-            ),
+            labels_3d=labels_3d,
             labels_2d=teacher_2d,
             consistency_2d=teacher_2d if self.consistency else LabeledBoxes.empty(4),
             ignore_3d=_unmatched(detections_3d, matched.index_3d, self.ignore_score_3d),
-            ignore_2d=_unmatched(detections_2d, rows_2d, self.ignore_score_2d),
+            ignore_2d=ignore_2d,
         )
 
 
@@ -126,6 +153,7 @@ def pseudo_label_rule(ssl: SemiSupervisedConfig) -> PseudoLabelRule:
             tau_3d_unmatched=ssl.unmatched_3d_threshold,
             ignore_score_3d=ssl.ignore_unmatched_score_3d,
             ignore_score_2d=ssl.ignore_unmatched_score_2d,
+            lidar_only_ignore_2d=ssl.lidar_only_ignore_2d,
         ),
     }
     if ssl.method not in rules:  # labeled-only and its control learn from no pseudo-labels

@@ -194,6 +194,17 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     assert ignore[0]["pseudo_labels_3d"] == default[0]["pseudo_labels_3d"]  # the same teachers
     assert sum(r["ignored_3d"] + r["ignored_2d"] for r in ignore) > 0
 
+    # LiDAR-only labels whose projections the 2D student does not learn as background.
+    assert main([*args, "--out", str(tmp_path / "protected"), "--steps", "2", "--method",
+                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
+                 "ssl.tau_3d_unmatched=0.05", "--set", "ssl.lidar_only_ignore_2d=true"]) == 0  # fmt: skip
+    lines = (tmp_path / "protected" / "metrics.jsonl").read_text().splitlines()
+    protected = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+    assert protected[0]["pseudo_labels_2d"] == default[0]["pseudo_labels_2d"]
+    assert protected[0]["pseudo_labels_3d"] >= default[0]["pseudo_labels_3d"]
+    assert sum(r["ignored_2d"] for r in protected) > 0
+    assert all(r["ignored_3d"] == 0 for r in protected)
+
 
 def test_semi_supervised_methods_need_pretrained_weights(synth_root, tmp_path, capsys):
     args = ["train", "--config", str(TINY), "--data", str(synth_root), "--out", str(tmp_path / "r")]
