@@ -418,7 +418,9 @@ class SemiSupervisedConfig:
         if self.student_scale[0] > self.student_scale[1]:
             check.fail("student_scale", "[low, high] with low <= high")
         if self.lidar_only_ignore_2d and self.unmatched_3d_threshold is None:
-            check.fail("lidar_only_ignore_2d", "false while tau_3d_unmatched is 1.0 (no LiDAR-only labels)")
+            check.fail(
+                "lidar_only_ignore_2d", "false while tau_3d_unmatched is 1.0 (no LiDAR-only labels)"
+            )
 
 
 # How a retraining round uses the label store's frames: "pool" (they join the unlabeled pool

@@ -153,8 +153,10 @@ def test_detmatch_can_keep_lidar_only_labels_out_of_the_2d_background(calib):
     det_2d = detections([car_2d, rider_2d], [[0.85, 0.05, 0.1], [0.1, 0.1, 0.5]])
 
     def rule(protect, ignore_score_2d=1.0):
-        return DetMatchRule(-1.5, 0.3, 4.0, False, tau_3d_unmatched=0.6,
-                            ignore_score_2d=ignore_score_2d, lidar_only_ignore_2d=protect)  # fmt: skip
+        return DetMatchRule(
+            -1.5, 0.3, 4.0, False, tau_3d_unmatched=0.6, ignore_score_2d=ignore_score_2d,
+            lidar_only_ignore_2d=protect,
+        )  # fmt: skip
 
     protected = rule(True).frame_labels(det_2d, det_3d, calib, IMAGE)
     person_2d = project_boxes_to_image(np.array([person]), calib, IMAGE)

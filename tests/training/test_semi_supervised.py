@@ -197,7 +197,8 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     # LiDAR-only labels whose projections the 2D student does not learn as background.
     assert main([*args, "--out", str(tmp_path / "protected"), "--steps", "2", "--method",
                  "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
-                 "ssl.tau_3d_unmatched=0.05", "--set", "ssl.lidar_only_ignore_2d=true"]) == 0  # fmt: skip
+                 "ssl.tau_3d_unmatched=0.05", "--set",
+                 "ssl.lidar_only_ignore_2d=true"]) == 0  # fmt: skip
     lines = (tmp_path / "protected" / "metrics.jsonl").read_text().splitlines()
     protected = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
     assert protected[0]["pseudo_labels_2d"] == default[0]["pseudo_labels_2d"]
