@@ -94,3 +94,16 @@ def test_the_pseudo_label_report_follows_the_configs_detmatch_rule():
     assert detmatch_rows(base.replace("ssl", tau_3d_unmatched=1.0)) == (["Car"], ["Car"])
     lidar_only = base.replace("ssl", tau_3d_unmatched=0.6)
     assert detmatch_rows(lidar_only) == (["Car", "Pedestrian"], ["Car"])
+
+
+def test_every_benchmark_method_is_a_valid_config():
+    """A method whose overrides contradict each other (e.g. 2D ignore regions of LiDAR-only
+    labels with those labels off) would only fail hours into a benchmark run."""
+    from benchmarks.ssl_benchmark import METHODS
+    from detmatch.config import apply_overrides
+
+    base = load_config(TINY)
+    for method, overrides in METHODS.items():
+        assert apply_overrides(base, overrides).ssl.method != "labeled-only", method
+    protected = apply_overrides(base, METHODS["detmatch-lidar-confident-2d-ignore"]).ssl
+    assert protected.lidar_only_ignore_2d and protected.unmatched_3d_threshold == 0.6
