@@ -175,32 +175,29 @@ def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
     pairs = [json.loads(line)["consistency_pairs"] for line in lines if "consistency" in line]
     assert len(pairs) == 2 and sum(pairs) >= sum(r["consistency_pairs"] for r in steps[:2])
 
+    def two_steps(name: str, *overrides: str) -> list[dict]:
+        """The step records of a 2-step DetMatch run from the pre-training with --set overrides."""
+        sets = [arg for override in overrides for arg in ("--set", override)]
+        assert main([*args, "--out", str(tmp_path / name), "--steps", "2", "--method",
+                     "detmatch", "--pretrained", str(tmp_path / "pre"), *sets]) == 0  # fmt: skip
+        lines = (tmp_path / name / "metrics.jsonl").read_text().splitlines()
+        return [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+
     # The defaults (what won on dev): the same matching, no consistency loss.
-    assert main([*args, "--out", str(tmp_path / "default"), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(tmp_path / "pre")]) == 0  # fmt: skip
-    lines = (tmp_path / "default" / "metrics.jsonl").read_text().splitlines()
-    default = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+    default = two_steps("default")
     assert len(default) == 2 and sum(r["pseudo_labels_3d"] for r in default) > 0
     assert all(r["consistency_pairs"] == 0 and r["consistency"] == 0 for r in default)
     assert all(r["ignored_3d"] == r["ignored_2d"] == 0 for r in default)
 
     # Unmatched confident detections as ignore regions: the same labels, fewer negatives.
-    assert main([*args, "--out", str(tmp_path / "ignore"), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
-                 "ssl.ignore_unmatched_score_3d=0.1", "--set",
-                 "ssl.ignore_unmatched_score_2d=0.1"]) == 0  # fmt: skip
-    lines = (tmp_path / "ignore" / "metrics.jsonl").read_text().splitlines()
-    ignore = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+    ignore = two_steps(
+        "ignore", "ssl.ignore_unmatched_score_3d=0.1", "ssl.ignore_unmatched_score_2d=0.1"
+    )
     assert ignore[0]["pseudo_labels_3d"] == default[0]["pseudo_labels_3d"]  # the same teachers
     assert sum(r["ignored_3d"] + r["ignored_2d"] for r in ignore) > 0
 
     # LiDAR-only labels whose projections the 2D student does not learn as background.
-    assert main([*args, "--out", str(tmp_path / "protected"), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--set",
-                 "ssl.tau_3d_unmatched=0.05", "--set",
-                 "ssl.lidar_only_ignore_2d=true"]) == 0  # fmt: skip
-    lines = (tmp_path / "protected" / "metrics.jsonl").read_text().splitlines()
-    protected = [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
+    protected = two_steps("protected", "ssl.tau_3d_unmatched=0.05", "ssl.lidar_only_ignore_2d=true")
     assert protected[0]["pseudo_labels_2d"] == default[0]["pseudo_labels_2d"]
     assert protected[0]["pseudo_labels_3d"] >= default[0]["pseudo_labels_3d"]
     assert sum(r["ignored_2d"] for r in protected) > 0
