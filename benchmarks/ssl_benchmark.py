@@ -76,14 +76,19 @@ from detmatch.training.semi_supervised import trainer_type
 from detmatch.training.trainer import SupervisedTrainer
 
 # What each method name of --methods trains: config overrides (`section.key=value`) on the
-# benchmark's config. "detmatch" is the defaults (what won on dev); "detmatch-paper" the paper's
-# constants (a named preset); the paper's Table 6 ablations set both consistency switches.
+# benchmark's config. "detmatch" is the defaults (what won on dev: LiDAR-only labels above 0.6
+# with the 2D side protected); "detmatch-paper" the paper's constants (a named preset);
+# "detmatch-matched-only" the paper's rule on the defaults (the default before 2026-12-05); the
+# paper's Table 6 ablations set both consistency switches and keep the other defaults.
 DETMATCH = "ssl.method=detmatch"
 METHODS: dict[str, tuple[str, ...]] = {
     "control": ("ssl.method=labeled-only-control",),
     "confidence": ("ssl.method=confidence",),
     "detmatch": (DETMATCH,),
     "detmatch-paper": PRESETS["paper"],
+    "detmatch-matched-only": (
+        DETMATCH, "ssl.tau_3d_unmatched=1.0", "ssl.lidar_only_ignore_2d=false",
+    ),
     "detmatch-matching-only": (
         DETMATCH, "ssl.consistency_class=false", "ssl.consistency_box=false",
     ),
@@ -113,9 +118,12 @@ METHODS: dict[str, tuple[str, ...]] = {
     # In-view 3D teacher detections the camera did not confirm become LiDAR-only pseudo-labels
     # above 0.6: on dev, the pre-trained teacher's 3D pseudo-label F1 peaks there in every class
     # (BENCHMARKS.md, "LiDAR-only pseudo-labels in view").
-    "detmatch-lidar-confident": (DETMATCH, "ssl.tau_3d_unmatched=0.6"),
+    "detmatch-lidar-confident": (
+        DETMATCH, "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=false",
+    ),
     # The same labels, with the 2D side protected: their image projections are not taught as
-    # background to the 2D student (the camera was silent where the LiDAR is confident).
+    # background to the 2D student (the camera was silent where the LiDAR is confident). The
+    # defaults since 2026-12-05 ("detmatch"), spelled out for the dev record's runs.
     "detmatch-lidar-confident-2d-ignore": (
         DETMATCH, "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=true",
     ),

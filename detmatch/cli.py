@@ -233,7 +233,7 @@ def _label(args: argparse.Namespace) -> int:
     print(
         f"labeled {summary.frames} frames with model version {summary.model_version}: "
         f"{summary.labels} labels ({summary.matched} matched 2D-3D, {summary.lidar_only} "
-        f"LiDAR-only outside the camera's view) -> {'; '.join(where)}"
+        f"LiDAR-only) -> {'; '.join(where)}"
     )
     return 0
 

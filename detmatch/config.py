@@ -333,12 +333,16 @@ class SemiSupervisedConfig:
     fov_fallback: bool = True
     # DetMatch: in-view 3D teacher detections the matching leaves unmatched whose max class
     # probability exceeds this become LiDAR-only pseudo-labels (the camera misses occluded and
-    # small objects the LiDAR sees). 1.0: off (the paper: only matched objects in view).
-    tau_3d_unmatched: float = 1.0
+    # small objects the LiDAR sees). 1.0: off (the paper: only matched objects in view). 0.6
+    # (with lidar_only_ignore_2d) won on dev over three split seeds: +1.3 3D mAP, +0.1 2D mAP
+    # against the paper's rule (BENCHMARKS.md, "LiDAR-only pseudo-labels with the 2D side
+    # protected"); 0.6 is where dev's 3D pseudo-label F1 peaks in every class.
+    tau_3d_unmatched: float = 0.6
     # DetMatch: the image projections of those LiDAR-only labels become ignore regions of the
-    # 2D student (no background where the LiDAR is confident and the camera was silent); needs
-    # tau_3d_unmatched < 1. Off: the paper's rule (every unmatched place is 2D background).
-    lidar_only_ignore_2d: bool = False
+    # 2D student (no background where the LiDAR is confident and the camera was silent); no
+    # effect while tau_3d_unmatched is 1.0. Off: the paper's rule (every unmatched place is 2D
+    # background).
+    lidar_only_ignore_2d: bool = True
     # DetMatch: the 3D (2D) teacher's unmatched detections whose max class probability exceeds
     # this are neither pseudo-labels nor background: the 3D (2D) student learns no background
     # around them. 1.0: off (the paper: every unmatched detection is background).
@@ -417,10 +421,6 @@ class SemiSupervisedConfig:
         check.positive("student_scale")
         if self.student_scale[0] > self.student_scale[1]:
             check.fail("student_scale", "[low, high] with low <= high")
-        if self.lidar_only_ignore_2d and self.unmatched_3d_threshold is None:
-            check.fail(
-                "lidar_only_ignore_2d", "false while tau_3d_unmatched is 1.0 (no LiDAR-only labels)"
-            )
 
 
 # How a retraining round uses the label store's frames: "pool" (they join the unlabeled pool

@@ -62,9 +62,9 @@ def test_manifest_describes_models_thresholds_training_and_files(exported_reposi
     assert manifest.matching.tau_hung == -1.5
     assert manifest.matching.tau_3d_outside_view == 0.3
     # The training's in-view LiDAR-only rule, as match_detections takes it (1.0 in the config:
-    # off, None).
+    # off, None; the default 0.6).
     unmatched = manifest.training.config["ssl"]["tau_3d_unmatched"]
-    assert manifest.matching.tau_3d_unmatched == (None if unmatched == 1.0 else unmatched)
+    assert manifest.matching.tau_3d_unmatched == (None if unmatched == 1.0 else unmatched) == 0.6
     training = manifest.training
     assert training.step == 6 and tuple(training.data["classes"]) == manifest.classes
     assert len(training.checkpoint_sha256) == 64

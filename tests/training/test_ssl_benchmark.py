@@ -107,3 +107,8 @@ def test_every_benchmark_method_is_a_valid_config():
         assert apply_overrides(base, overrides).ssl.method != "labeled-only", method
     protected = apply_overrides(base, METHODS["detmatch-lidar-confident-2d-ignore"]).ssl
     assert protected.lidar_only_ignore_2d and protected.unmatched_3d_threshold == 0.6
+    assert protected == apply_overrides(base, METHODS["detmatch"]).ssl  # the defaults now
+    matched_only = apply_overrides(base, METHODS["detmatch-matched-only"]).ssl
+    assert matched_only.unmatched_3d_threshold is None and not matched_only.lidar_only_ignore_2d
+    exposed = apply_overrides(base, METHODS["detmatch-lidar-confident"]).ssl
+    assert exposed.unmatched_3d_threshold == 0.6 and not exposed.lidar_only_ignore_2d
