@@ -21,8 +21,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from detmatch.config import apply_overrides, load_config
 from detmatch.data.dataset import FrameDataset
 from detmatch.eval.pseudo_labels import MODALITIES, pseudo_label_quality
@@ -32,7 +30,13 @@ from detmatch.pseudo_labels import confident_detections
 from detmatch.structures import Labels
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ssl_benchmark import IOU_2D, IOU_3D, as_labels, pseudo_label_sets, teacher_frames  # noqa: E402
+from ssl_benchmark import (  # noqa: E402
+    IOU_2D,
+    IOU_3D,
+    modality_labels,
+    pseudo_label_sets,
+    teacher_frames,
+)
 
 THRESHOLDS = tuple(round(0.02 * k, 2) for k in range(1, 50))
 PRINTED = tuple(round(0.1 * k, 1) for k in range(1, 10))
@@ -42,10 +46,11 @@ def confidence_rows(det_2d, view_3d, threshold: float, classes) -> Labels:
     """Confidence thresholding's labels of one frame at one threshold, both modalities."""
     kept_3d = confident_detections(view_3d, threshold)
     kept_2d = confident_detections(det_2d, threshold)
-    names = [classes[c] for c in kept_3d.classes] + [classes[c] for c in kept_2d.classes]
-    boxes_3d = np.concatenate([kept_3d.boxes.reshape(-1, 7), np.zeros((len(kept_2d), 7))])
-    boxes_2d = np.concatenate([np.zeros((len(kept_3d), 4)), kept_2d.boxes.reshape(-1, 4)])
-    return as_labels(names, boxes_3d, boxes_2d, np.concatenate([kept_3d.scores, kept_2d.scores]))
+    return modality_labels(
+        (kept_3d.boxes, kept_3d.classes, kept_3d.scores),
+        (kept_2d.boxes, kept_2d.classes, kept_2d.scores),
+        classes,
+    )
 
 
 def at_equal_recall(sweep: dict[float, dict], recall: float) -> tuple[float, dict] | None:

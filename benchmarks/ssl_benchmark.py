@@ -238,18 +238,26 @@ def pseudo_label_sets(
         det_3d, det_2d, sample.calib, size, ssl.tau_hung, None, ssl.unmatched_3d_threshold
     )
     pairs = matched.matched  # the 2D labels: LiDAR-only rows have none
-    sets = {}
-    for method, (b3, c3, s3, b2, c2, s2) in {
-        "confidence": (confident_3d.boxes, confident_3d.classes, confident_3d.scores,
-                       confident_2d.boxes, confident_2d.classes, confident_2d.scores),
-        "detmatch": (matched.boxes_3d, matched.class_3d, matched.score_3d,
-                     matched.boxes_2d[pairs], matched.class_2d[pairs], matched.score_2d[pairs]),
-    }.items():  # fmt: skip
-        names = [classes[c] for c in c3] + [classes[c] for c in c2]
-        boxes_3d = np.concatenate([b3.reshape(-1, 7), np.zeros((len(c2), 7))])
-        boxes_2d = np.concatenate([np.zeros((len(c3), 4)), b2.reshape(-1, 4)])
-        sets[method] = as_labels(names, boxes_3d, boxes_2d, np.concatenate([s3, s2]))
-    return sets
+    return {
+        "confidence": modality_labels(
+            (confident_3d.boxes, confident_3d.classes, confident_3d.scores),
+            (confident_2d.boxes, confident_2d.classes, confident_2d.scores), classes,
+        ),
+        "detmatch": modality_labels(
+            (matched.boxes_3d, matched.class_3d, matched.score_3d),
+            (matched.boxes_2d[pairs], matched.class_2d[pairs], matched.score_2d[pairs]), classes,
+        ),
+    }  # fmt: skip
+
+
+def modality_labels(rows_3d: tuple, rows_2d: tuple, classes: tuple[str, ...]) -> Labels:
+    """3D and 2D pseudo-labels, each (boxes, class ids, scores), as one Labels: 3D rows carry
+    zero 2D boxes and 2D rows zero 3D boxes, so each counts for its own modality only."""
+    (b3, c3, s3), (b2, c2, s2) = rows_3d, rows_2d
+    names = [classes[c] for c in c3] + [classes[c] for c in c2]
+    boxes_3d = np.concatenate([b3.reshape(-1, 7), np.zeros((len(c2), 7))])
+    boxes_2d = np.concatenate([np.zeros((len(c3), 4)), b2.reshape(-1, 4)])
+    return as_labels(names, boxes_3d, boxes_2d, np.concatenate([s3, s2]))
 
 
 # Figure 4: a ground-truth object counts as found by a modality when a confident (score > 0.3)
