@@ -26,7 +26,7 @@ import grpc
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-KITTI_SAMPLE = REPO.parent / "shared" / "kitti_sample"
+KITTI_SAMPLE = REPO / "tests" / "data" / "kitti"
 SAMPLE_IDS = ("000000", "000001", "000002")
 TORCH_FREE_SERVE = (
     "import sys; sys.modules['torch'] = None; "

@@ -2,8 +2,8 @@ from pathlib import Path
 
 import pytest
 
-# Three real KITTI frames (shared fixtures beside the repository, see ../shared/kitti_sample).
-KITTI_SAMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "kitti_sample"
+# Three real KITTI frames, shipped with their licence (tests/data/kitti/README.md).
+KITTI_SAMPLE = Path(__file__).resolve().parent / "data" / "kitti"
 
 
 @pytest.fixture(scope="session")
