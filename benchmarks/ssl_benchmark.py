@@ -1,4 +1,4 @@
-"""The semi-supervised benchmark (DESIGN.md section 5) for one split seed, from one command:
+"""The semi-supervised benchmark (docs/design.md section 5) for one split seed, from one command:
 labeled-only vs its EMA control vs confidence thresholding vs DetMatch, from the same
 pre-trained weights on the same labeled split, under the dev protocol.
 

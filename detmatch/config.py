@@ -223,7 +223,7 @@ class Detector3DConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimisation (DESIGN.md section 3): SGD for 2D, AdamW for 3D, warm-up then constant."""
+    """Optimisation (docs/design.md section 3): SGD for 2D, AdamW for 3D, warm-up then constant."""
 
     steps: int = 2000
     batch_size: int = 4
@@ -272,7 +272,7 @@ class TrainConfig:
 @dataclass(frozen=True)
 class AugmentConfig:
     """Augmentation of labeled frames, in pre-training and in the labeled half of
-    teacher-student steps (DESIGN.md section 3; the flip is [train] flip_probability, shared
+    teacher-student steps (docs/design.md section 3; the flip is [train] flip_probability, shared
     by image and cloud). 3D only (the image and the 2D targets untouched unless
     gt_sampling_image): ground-truth database sampling (objects of other labeled frames pasted
     into the cloud with their points), then global rotation about z in +-rotation radians and
@@ -315,7 +315,7 @@ METHODS = ("labeled-only", "labeled-only-control", "confidence", "detmatch")
 
 @dataclass(frozen=True)
 class SemiSupervisedConfig:
-    """Teacher-student training (DESIGN.md section 3). method: labeled-only, confidence
+    """Teacher-student training (docs/design.md section 3). method: labeled-only, confidence
     (single-modality thresholding) or detmatch. The labeled frames are [data] train_split."""
 
     method: str = "labeled-only"

@@ -1,4 +1,4 @@
-"""The method's constants (DESIGN.md section 3), defined once.
+"""The method's constants (docs/design.md section 3), defined once.
 
 The config's defaults, the matching, the pseudo-label rules, the 2D detector's normalisation,
 the photometric augmentation and the exported manifest all read them from here. No imports:

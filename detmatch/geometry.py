@@ -1,6 +1,6 @@
 """Pure box geometry on numpy arrays: corners, frame transforms, projection, IoU.
 
-No torch here: the labeling service reuses these functions. Conventions (DESIGN.md section 2):
+No torch here: the labeling service reuses these functions. Conventions (docs/design.md section 2):
 3D boxes are LiDAR-frame (N, 7) x, y, z, l, w, h, yaw with a gravity centre; 2D boxes are
 (N, 4) x1, y1, x2, y2 pixels.
 """
@@ -90,7 +90,7 @@ def lidar_to_image(points: np.ndarray, calib: Calibration) -> tuple[np.ndarray, 
 def project_boxes_to_image(
     boxes: np.ndarray, calib: Calibration, image_size: tuple[int, int]
 ) -> np.ndarray:
-    """(N, 7) LiDAR boxes -> (N, 4) image boxes, exactly as DESIGN.md section 3 step 1.
+    """(N, 7) LiDAR boxes -> (N, 4) image boxes, exactly as docs/design.md section 3 step 1.
 
     The 8 corners go through lidar -> image, depth is clamped to >= 1e-5, u = x/d, v = y/d;
     the box is (min u, min v, max u, max v) clipped to [0, W - 1] x [0, H - 1] (OpenPCDet's

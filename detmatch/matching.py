@@ -1,4 +1,4 @@
-"""2D-3D Hungarian matching of teacher detections (DESIGN.md section 3), numpy + scipy only.
+"""2D-3D Hungarian matching of teacher detections (docs/design.md section 3), numpy + scipy only.
 
 Training and the labeling service both use this module, so it must never import torch.
 Cost of pairing 3D box i (projected to the image) with 2D box j:

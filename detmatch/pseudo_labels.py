@@ -1,4 +1,4 @@
-"""DetMatch pseudo-labels from teacher detections (DESIGN.md section 3, steps 1-5), numpy only.
+"""DetMatch pseudo-labels from teacher detections (docs/design.md section 3, steps 1-5), numpy only.
 
 Shared by semi-supervised training and the labeling service, so both produce the same labels
 from the same detections. Everything is in the un-augmented frame.
@@ -66,7 +66,7 @@ def match_detections(
 ) -> MatchedLabels:
     """Hungarian-match a frame's 3D and 2D teacher detections.
 
-    3D boxes in the camera's view are projected (DESIGN.md step 1) and matched with the 2D
+    3D boxes in the camera's view are projected (docs/design.md step 1) and matched with the 2D
     boxes; assigned pairs with cost <= tau_hung become labels. 3D boxes outside the view whose
     score exceeds tau_3d_outside_view are kept as LiDAR-only labels (None disables that
     fallback). In-view 3D boxes left unmatched whose score exceeds tau_3d_unmatched are kept as

@@ -1,4 +1,4 @@
-"""Wire formats of DESIGN.md §7 -> the labeler's arrays, with errors naming the field.
+"""Wire formats of docs/design.md §7 -> the labeler's arrays, with errors naming the field.
 
 Images: PNG or JPEG bytes -> (H, W, 3) uint8 RGB. Points: raw little-endian float32 bytes,
 N x 4 (x, y, z, intensity) -> (N, 4) float32. Calibration: P2 (12), R0_rect (9),

@@ -1,4 +1,4 @@
-"""The embedded label store (DESIGN.md §7): KITTI-layout files plus a SQLite index per shard.
+"""The embedded label store (docs/design.md §7): KITTI-layout files plus a SQLite index per shard.
 
 Layout, schema, migration and crash recovery: `serving.store_layout`; listing, checking and
 exporting every shard: `serving.store_export`. Each server replica writes its own shard, and

@@ -90,7 +90,7 @@ def test_confidence_thresholding():
 
 def test_label_classes_are_the_argmax_of_the_probabilities(calib):
     """A peak decoded in one class channel whose probability vector favours another class is
-    labeled with the argmax, the class the matching cost compared (DESIGN.md step 3)."""
+    labeled with the argmax, the class the matching cost compared (docs/design.md step 3)."""
     car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
     probabilities = np.array([[0.35, 0.05, 0.9]])
     det_3d = Detections(np.array([car]), np.array([0.35]), np.array([0]), probabilities)

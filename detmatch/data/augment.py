@@ -1,4 +1,4 @@
-"""Augmentation for teacher-student training (DESIGN.md section 3), with recorded transforms.
+"""Augmentation for teacher-student training (docs/design.md section 3), with recorded transforms.
 
 - Shared by teacher and student (applied once): horizontal flip of image and point cloud
   together, and the image rescale to the network input (`ImageTransform`).
@@ -216,7 +216,7 @@ def random_erase(
 
 
 def strong_photometric(image: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-    """The student 2D augmentation of DESIGN.md section 3 on a (3, H, W) image in [0, 255].
+    """The student 2D augmentation of docs/design.md section 3 on a (3, H, W) image in [0, 255].
     Random erasing fills with standard-normal noise in normalised units, as torchvision does
     after normalisation; here it is mapped back to [0, 255] pixel units."""
     x = image / 255.0

@@ -70,7 +70,7 @@ class ImageTransform:
 
     def to_image(self, boxes: np.ndarray) -> np.ndarray:
         """Detected (N, 4) boxes in input pixels -> original pixels clipped to the image,
-        [0, W - 1] x [0, H - 1] like projected boxes (DESIGN.md section 3); the exported 2D
+        [0, W - 1] x [0, H - 1] like projected boxes (docs/design.md section 3); the exported 2D
         graph does the same."""
         boxes = self.invert(boxes)
         width, height = self.original_size
@@ -258,7 +258,7 @@ def augmented_sample(
     """Select the training classes; the image goes through `image` (flip, resize, window),
     the cloud through `cloud` (flip, rotation, scale) after the `pasted` database objects
     replaced its points inside their boxes. projected_2d: 2D boxes are the 3D labels projected
-    into the image (DESIGN.md section 3, step 1) instead of the annotated 2D boxes. Pasted
+    into the image (docs/design.md section 3, step 1) instead of the annotated 2D boxes. Pasted
     objects join the 3D labels, and the image and 2D labels too when they carry crops."""
     gt_2d, gt_3d = LabeledBoxes.empty(4), LabeledBoxes.empty(7)
     cropped = [o for o in pasted if o.crop is not None]

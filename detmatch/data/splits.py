@@ -1,5 +1,5 @@
 """Labeled / unlabeled splits of a data set's train frames, written as ImageSets files, and the
-labeled `dev` split that every tuning decision is made on (DESIGN.md section 5).
+labeled `dev` split that every tuning decision is made on (docs/design.md section 5).
 
 With a dev fraction, the dev frames are drawn first from the source split by their own seed
 (the same dev frames for every labeled split seed), and the labeled and unlabeled frames come

@@ -1,5 +1,6 @@
 """Unlabeled frames for teacher-student training: the teacher's weak view and the student's
-strong view of the same frame, with every geometric transform recorded (DESIGN.md section 3)."""
+strong view of the same frame, with every geometric transform recorded (docs/design.md
+section 3)."""
 
 from __future__ import annotations
 

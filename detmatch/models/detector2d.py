@@ -166,7 +166,8 @@ class CenterNet2D(Detector2D):
         normalizer: float | None = None,
     ) -> dict[str, torch.Tensor]:
         """Losses against per-image targets from build_targets. Without box_regression only the
-        classification (heatmap) loss is returned: the pseudo-label loss of DESIGN.md section 3.
+        classification (heatmap) loss is returned: the pseudo-label loss of docs/design.md
+        section 3.
         normalizer: what the heatmap loss is divided by (None: the targets' peaks)."""
         heatmap, size, offset = outputs
         target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)

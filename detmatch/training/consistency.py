@@ -1,4 +1,4 @@
-"""The 2D-teacher -> 3D-student consistency loss of DetMatch (DESIGN.md section 3).
+"""The 2D-teacher -> 3D-student consistency loss of DetMatch (docs/design.md section 3).
 
 The 3D student's predictions on an unlabeled frame are decoded differentiably, moved back to
 the un-augmented frame, projected into the image, matched to the 2D teacher's matched
@@ -48,7 +48,7 @@ def box_corners_torch(boxes: torch.Tensor) -> torch.Tensor:
 def project_boxes_torch(
     boxes: torch.Tensor, calib: Calibration, image_size: tuple[int, int]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Differentiable DESIGN.md step-1 projection of (N, 7) LiDAR boxes.
+    """Differentiable docs/design.md step-1 projection of (N, 7) LiDAR boxes.
 
     Returns (N, 4) clipped xyxy boxes and (N,) bool validity, the torch twin of
     `detmatch.geometry.boxes_usable_for_consistency`.
@@ -96,7 +96,7 @@ def giou_torch(boxes1: torch.Tensor, boxes2: torch.Tensor) -> torch.Tensor:
     return inter / (union + eps) - (hull - union) / (hull + eps)
 
 
-# The authors' candidate filter (DESIGN.md section 3): BEV NMS, then 2D NMS on projections.
+# The authors' candidate filter (docs/design.md section 3): BEV NMS, then 2D NMS on projections.
 CANDIDATE_BEV_NMS = 0.1
 CANDIDATE_IMAGE_NMS = 0.5
 

@@ -1,4 +1,4 @@
-"""Exponential-moving-average teachers (DESIGN.md section 3)."""
+"""Exponential-moving-average teachers (docs/design.md section 3)."""
 
 from __future__ import annotations
 

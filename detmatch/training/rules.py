@@ -1,4 +1,4 @@
-"""How a teacher-student method turns teacher detections into pseudo-labels (DESIGN.md
+"""How a teacher-student method turns teacher detections into pseudo-labels (docs/design.md
 section 3): a small strategy object per method, chosen once from the config.
 
 - `ConfidenceThresholding`: each modality keeps its own confident detections (tau_3D, tau_2D).

@@ -1,4 +1,4 @@
-"""Teacher-student training: confidence thresholding and DetMatch (DESIGN.md section 3).
+"""Teacher-student training: confidence thresholding and DetMatch (docs/design.md section 3).
 
 Each step takes equal numbers of labeled and unlabeled frames. `train_step` reads like the
 method: teacher predictions on the weak views, pseudo-labels by the method's rule

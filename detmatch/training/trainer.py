@@ -1,7 +1,7 @@
 """Supervised training of both detectors (the labeled-only stage of DetMatch).
 
 One step trains the 2D and the 3D detector on the same labeled frames, each with its own
-optimiser (DESIGN.md section 3). Rank 0 alone logs, evaluates and writes checkpoints.
+optimiser (docs/design.md section 3). Rank 0 alone logs, evaluates and writes checkpoints.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Synthetic paired camera + LiDAR data in KITTI layout (DESIGN.md section 6).
+"""Synthetic paired camera + LiDAR data in KITTI layout (docs/design.md section 6).
 
 Road scenes with Cars, Vans, Pedestrians and Cyclists, pedestrian-sized clutter (ambiguous in
 the point cloud, obvious in colour) and parked rows (overlapping in the image, apart in 3D),
