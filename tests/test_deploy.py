@@ -80,6 +80,17 @@ def test_kubernetes_deployment_probes_the_served_port():
     assert {p["targetPort"] for p in service["ports"]} <= set(ports)
 
 
+def test_kubernetes_deployment_satisfies_the_servers_auth_rule():
+    # `detmatch serve` refuses to start without a token unless --no-auth: the pod must either
+    # say --no-auth or require the token's secret (an optional one would crash-loop the pod).
+    documents = {d["kind"]: d for d in yaml.safe_load_all(KUBERNETES.read_text())}
+    (container,) = documents["Deployment"]["spec"]["template"]["spec"]["containers"]
+    env = {e["name"]: e for e in container.get("env", [])}
+    if "--no-auth" not in container["args"]:
+        secret = env["DETMATCH_TOKEN"]["valueFrom"]["secretKeyRef"]
+        assert secret.get("optional", False) is False
+
+
 def test_retraining_cronjob_runs_one_round_at_a_time_on_the_served_volumes():
     path = REPO / "examples" / "kubernetes" / "retrain-cronjob.yaml"
     documents = {d["kind"]: d for d in yaml.safe_load_all(path.read_text())}
