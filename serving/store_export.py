@@ -117,10 +117,14 @@ def export_store(
     if not 0.0 <= val_fraction < 1.0:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
     root, out = Path(root), Path(out)
+    if not root.is_dir():
+        raise FileNotFoundError(f"no label store at {root}")
     wanted = None if namespaces is None else set(namespaces)
     records = [r for r in list_frames(root) if wanted is None or r.namespace in wanted]
     if wanted is not None and (missing := wanted - {r.namespace for r in records}):
-        raise ValueError(f"the store {root} holds no frame of namespace {sorted(missing)}")
+        raise ValueError(
+            f"the store {root} holds no frame of namespace {', '.join(sorted(missing))}"
+        )
     present = tuple(sorted({r.namespace for r in records}))
     names = {r.key: _export_id(r, len(present) > 1) for r in records}
     splits = {r.key: split_of(r.namespace, r.frame_id, val_fraction, seed) for r in records}

@@ -84,9 +84,21 @@ def make_split(
     pool = ids
     if dev_fraction:
         dev, pool = choose_labeled(ids, dev_fraction, DEV_SEED)
+    if not pool:
+        raise ValueError(
+            f"--dev-fraction {dev_fraction} holds out all {len(ids)} frames of "
+            f"'{source_split}': none is left to split"
+        )
+    labeled, unlabeled = choose_labeled(pool, min(fraction * len(ids) / len(pool), 0.999), seed)
+    if not unlabeled:
+        raise ValueError(
+            f"--fraction {fraction} with --dev-fraction {dev_fraction} of the {len(ids)} frames "
+            f"of '{source_split}' leaves no unlabeled frame ({len(dev)} dev, {len(labeled)} "
+            "labeled): lower one of them"
+        )
+    if dev_fraction:
         dev_path = dataset.image_set_path(dev_name(dev_fraction, source_split))
         write_image_set(dev_path, dev)
-    labeled, unlabeled = choose_labeled(pool, min(fraction * len(ids) / len(pool), 0.999), seed)
     labeled_name, unlabeled_name = split_names(fraction, seed, source_split, dev_fraction)
     labeled_path = dataset.image_set_path(labeled_name)
     unlabeled_path = dataset.image_set_path(unlabeled_name)

@@ -261,8 +261,9 @@ def results_from_curves(curves: KittiCurves) -> dict:
 def evaluate_dirs(gt_dir: Path, pred_dir: Path, ids: Sequence[str], classes: Sequence[str]) -> dict:
     """Evaluate KITTI result files `pred_dir/ID.txt` against labels `gt_dir/ID.txt`.
 
-    A missing result file means no detections; a missing label file is an error; malformed
-    files raise KittiFormatError naming the file and line.
+    A missing result file means no detections, but a result directory with no file for any of
+    `ids` is an error (a wrong folder would otherwise score 0.00 everywhere); a missing label
+    file is an error; malformed files raise KittiFormatError naming the file and line.
     """
     gt_dir, pred_dir = Path(gt_dir), Path(pred_dir)
     canonical_classes(classes)
@@ -271,6 +272,13 @@ def evaluate_dirs(gt_dir: Path, pred_dir: Path, ids: Sequence[str], classes: Seq
             raise FileNotFoundError(f"{kind} directory {directory} does not exist")
     if not ids:
         raise ValueError("no frame ids to evaluate")
+    if not any((pred_dir / f"{frame_id}.txt").is_file() for frame_id in ids):
+        found = [p.name for p in pred_dir.iterdir() if p.is_dir()][:2]
+        hint = f" (it holds the folders {', '.join(found)}: pass one of them)" if found else ""
+        raise ValueError(
+            f"result directory {pred_dir} has no result file for any of the {len(ids)} frames "
+            f"to evaluate, e.g. {ids[0]}.txt{hint}"
+        )
     gt: list[KittiObjects] = []
     dt: list[KittiObjects] = []
     for frame_id in ids:

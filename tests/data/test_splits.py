@@ -1,6 +1,6 @@
 import pytest
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.data.kitti import read_image_set, write_image_set
 from detmatch.data.splits import choose_labeled, dev_name, split_names
 
@@ -70,3 +70,16 @@ def test_the_dev_split_is_disjoint_and_shared_by_every_seed(layout):
         assert sorted(dev + labeled + unlabeled) == ids
         devs.append(dev)
     assert devs[0] == devs[1]
+
+
+def test_a_split_that_leaves_no_unlabeled_frame_is_refused_and_writes_nothing(tmp_path, capsys):
+    # 12 train frames: the dev set takes 11 and the one left is labeled.
+    root = tmp_path
+    (root / "training").mkdir()
+    write_image_set(root / "ImageSets" / "train.txt", [f"{i:06d}" for i in range(12)])
+    before = sorted(p.name for p in (root / "ImageSets").iterdir())
+    argv = ["split", "--data", str(root), "--fraction", "0.01", "--seed", "0"]
+    assert main([*argv, "--dev-fraction", "0.99"]) == 2
+    error = capsys.readouterr().err
+    assert "leaves no unlabeled frame" in error and "--dev-fraction 0.99" in error
+    assert sorted(p.name for p in (root / "ImageSets").iterdir()) == before

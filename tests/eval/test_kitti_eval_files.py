@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.data.kitti import KittiFormatError, KittiObjects, read_objects, write_objects
 from detmatch.eval.kitti import evaluate, evaluate_dirs, format_table
 from tests.eval.helpers import noisy_detections, random_scene
@@ -83,11 +83,13 @@ def test_missing_result_file_means_no_detections(small_set):
     dt[4] = KittiObjects.empty(with_score=True)
     (pred_dir / f"{ids[4]}.txt").unlink()
     assert evaluate_dirs(gt_dir, pred_dir, ids, CLASSES) == evaluate(gt, dt, CLASSES)
+    # A folder without any of the frames' result files is a mistake (the wrong folder, or the
+    # parent of `detmatch predict`'s 3d/ and 2d/), not a model that detected nothing.
     for path in pred_dir.iterdir():
         path.unlink()
-    nothing = evaluate_dirs(gt_dir, pred_dir, ids, CLASSES)
-    assert_exact_shape(nothing, CLASSES, ["bbox", "bev", "3d", "aos"])
-    assert all(v == [0.0] * 3 for c in nothing.values() for t in c.values() for v in t.values())
+    (pred_dir / "3d").mkdir()
+    with pytest.raises(ValueError, match=r"no result file for any of the \d+ frames.*3d"):
+        evaluate_dirs(gt_dir, pred_dir, ids, CLASSES)
 
 
 def test_file_errors_are_clear(small_set, capsys):
