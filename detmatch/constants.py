@@ -12,6 +12,11 @@ TAU_3D = 0.3
 TAU_2D = 0.7
 # A teacher's own decoding keeps boxes whose max class probability exceeds this.
 SCORE_THRESHOLD = 0.1
+# The 2D-teacher -> 3D-student consistency loss on matched pairs: 2 x focal loss of the 3D
+# student's class logits, 20 x mean L1 of normalised xyxy, 2 x mean (1 - GIoU).
+CONSISTENCY_CLASS_WEIGHT = 2.0
+CONSISTENCY_L1_WEIGHT = 20.0
+CONSISTENCY_GIOU_WEIGHT = 2.0
 
 # The 2D detector's input normalisation, per RGB channel, for images in [0, 1]
 # (ImageNet's statistics; multiply by 255 for [0, 255] pixels).

@@ -11,9 +11,9 @@ from enum import IntEnum
 
 import numpy as np
 
-from detmatch.constants import TAU_3D, TAU_HUNG
 from detmatch.geometry import boxes_touching_image, project_boxes_to_image
 from detmatch.matching import hungarian_match, matching_cost
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.structures import Calibration, Detections
 
 
@@ -60,18 +60,16 @@ def match_detections(
     detections_2d: Detections,
     calib: Calibration,
     image_size: tuple[int, int],
-    tau_hung: float = TAU_HUNG,
-    tau_3d_outside_view: float | None = TAU_3D,
-    tau_3d_unmatched: float | None = None,
+    policy: MatchingPolicy,
 ) -> MatchedLabels:
-    """Hungarian-match a frame's 3D and 2D teacher detections.
+    """Hungarian-match a frame's 3D and 2D teacher detections under `policy`.
 
     3D boxes in the camera's view are projected (docs/design.md step 1) and matched with the 2D
-    boxes; assigned pairs with cost <= tau_hung become labels. 3D boxes outside the view whose
-    score exceeds tau_3d_outside_view are kept as LiDAR-only labels (None disables that
-    fallback). In-view 3D boxes left unmatched whose score exceeds tau_3d_unmatched are kept as
-    LiDAR-only labels too (None: off, as in the paper): the LiDAR finds objects the camera
-    misses. image_size is (W, H) of the original image.
+    boxes; assigned pairs with cost <= policy.tau_hung become labels. 3D boxes outside the view
+    whose score exceeds policy.tau_3d_outside_view are kept as LiDAR-only labels (None disables
+    that fallback). In-view 3D boxes left unmatched whose score exceeds policy.tau_3d_unmatched
+    are kept as LiDAR-only labels too (None: off, as in the paper): the LiDAR finds objects the
+    camera misses. image_size is (W, H) of the original image.
     """
     in_view = boxes_touching_image(detections_3d.boxes, calib, image_size)
     view_rows = np.flatnonzero(in_view)
@@ -83,15 +81,15 @@ def match_detections(
         detections_2d.probabilities,
         image_size,
     )
-    rows, cols = hungarian_match(cost, tau_hung)
+    rows, cols = hungarian_match(cost, policy.tau_hung)
     index_3d = view_rows[rows]
     index_2d = cols
     pair_cost = cost[rows, cols]
 
-    outside = _above(detections_3d.scores, ~in_view, tau_3d_outside_view)
+    outside = _above(detections_3d.scores, ~in_view, policy.tau_3d_outside_view)
     unmatched_in_view = in_view.copy()
     unmatched_in_view[index_3d] = False
-    confident = _above(detections_3d.scores, unmatched_in_view, tau_3d_unmatched)
+    confident = _above(detections_3d.scores, unmatched_in_view, policy.tau_3d_unmatched)
     n_matched = len(index_3d)
     lidar_only = np.concatenate([outside, confident])
     n_outside = len(lidar_only)

@@ -19,6 +19,7 @@ import detmatch
 from detmatch.config import ExperimentConfig, config_to_dict
 from detmatch.constants import IMAGE_MEAN, IMAGE_STD
 from detmatch.files import sha256_file
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.pillars import PillarGrid
 from export.graphs import EXPORTER, io_spec, opset_of
 from export.parity import ParityReport
@@ -121,14 +122,7 @@ def build_manifest(
                 score_threshold=detector3d.score_threshold,
             ),
         ),
-        matching=MatchingSpec(
-            tau_hung=config.ssl.tau_hung,
-            # The field-of-view fallback: confident 3D boxes outside the image (None: off).
-            tau_3d_outside_view=config.ssl.tau_3d if config.ssl.fov_fallback else None,
-            function="detmatch.pseudo_labels.match_detections",
-            # In-view 3D boxes the camera did not confirm, above this score (None: off).
-            tau_3d_unmatched=config.ssl.unmatched_3d_threshold,
-        ),
+        matching=MatchingSpec.of(MatchingPolicy.from_config(config.ssl)),
         training=TrainingRecord(
             checkpoint=str(checkpoint_file.resolve()),
             checkpoint_sha256=sha256_file(checkpoint_file),

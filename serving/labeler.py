@@ -8,14 +8,13 @@ numpy + scipy + onnxruntime only. A frame goes through:
 2. `detmatch.models.pillars.pillarize` (the numpy function training uses) and the 3D graph,
    which decodes LiDAR-frame boxes;
 3. each detector's score threshold (the manifest's, or the call's), then
-   `detmatch.pseudo_labels.match_detections`: projection, Hungarian matching with tau_hung and
-   the fallback to confident LiDAR-only labels outside the camera's view.
+   `detmatch.pseudo_labels.match_detections` under the manifest's matching policy with the
+   call's overrides: projection, Hungarian matching with tau_hung and the fallbacks to
+   confident LiDAR-only labels.
 """
 
 from __future__ import annotations
 
-import math
-import numbers
 import os
 import time
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from detmatch.matching_policy import MatchingPolicy, probability_threshold
 from detmatch.models.pillars import PILLAR_FEATURES, Pillars, pillarize
 from detmatch.pseudo_labels import MatchedLabels, match_detections
 from detmatch.structures import Calibration, Detections
@@ -89,9 +89,7 @@ class Labeler:
         self.grid = spec_3d.preprocessing.grid.grid()
         self.score_threshold_2d = spec_2d.score_threshold
         self.score_threshold_3d = spec_3d.score_threshold
-        self.tau_hung = self.manifest.matching.tau_hung
-        self.tau_3d_outside_view = self.manifest.matching.tau_3d_outside_view
-        self.tau_3d_unmatched = self.manifest.matching.tau_3d_unmatched
+        self.policy: MatchingPolicy = self.manifest.matching.policy
         self.settings = settings or SessionSettings()
         self.session_2d = make_session(self.path / spec_2d.file, self.settings)
         self.session_3d = make_session(self.path / spec_3d.file, self.settings)
@@ -123,6 +121,18 @@ class Labeler:
                     "(detmatch-export --repository ROOT --promote VERSION) or name a version"
                 )
         return cls(version_dir(root, version), settings)
+
+    @property
+    def tau_hung(self) -> float:
+        return self.policy.tau_hung
+
+    @property
+    def tau_3d_outside_view(self) -> float | None:
+        return self.policy.tau_3d_outside_view
+
+    @property
+    def tau_3d_unmatched(self) -> float | None:
+        return self.policy.tau_3d_unmatched
 
     # --- the two models ------------------------------------------------------------------------
 
@@ -174,34 +184,28 @@ class Labeler:
         """Label one paired frame.
 
         image: (H, W, 3) uint8 RGB; points: (N, 4) float32 LiDAR x, y, z, intensity;
-        calib: the frame's calibration. Thresholds default to the manifest's; with
-        outside_view_fallback False (or no tau_3d_outside_view here or in the manifest) no
-        LiDAR-only labels are made outside the view; in view, unmatched 3D boxes above
-        tau_3d_unmatched (here or in the manifest; neither: none) become LiDAR-only labels.
-        Raises ValueError naming the input and the problem for
-        malformed inputs.
+        calib: the frame's calibration. Score thresholds default to the manifest's; the
+        matching thresholds are the manifest's policy with this call's overrides
+        (`MatchingPolicy.with_overrides`: outside_view_fallback False makes no LiDAR-only labels
+        outside the view). Raises ValueError naming the input and the problem for malformed
+        inputs.
         """
         start = time.perf_counter()
         validate_frame(image, points, calib)
-        tau_hung = _override("tau_hung", tau_hung, self.tau_hung)
-        threshold_2d = _probability(
-            "score_threshold_2d", score_threshold_2d, self.score_threshold_2d
+        policy = self.policy.with_overrides(
+            tau_hung=tau_hung,
+            tau_3d_outside_view=tau_3d_outside_view,
+            tau_3d_unmatched=tau_3d_unmatched,
+            outside_view_fallback=outside_view_fallback,
         )
-        threshold_3d = _probability(
-            "score_threshold_3d", score_threshold_3d, self.score_threshold_3d
+        threshold_2d = probability_threshold(
+            "score_threshold_2d",
+            self.score_threshold_2d if score_threshold_2d is None else score_threshold_2d,
         )
-        tau_outside = None
-        if outside_view_fallback and (
-            tau_3d_outside_view is not None or self.tau_3d_outside_view is not None
-        ):
-            tau_outside = _probability(
-                "tau_3d_outside_view", tau_3d_outside_view, self.tau_3d_outside_view
-            )
-        tau_unmatched = None
-        if tau_3d_unmatched is not None or self.tau_3d_unmatched is not None:
-            tau_unmatched = _probability(
-                "tau_3d_unmatched", tau_3d_unmatched, self.tau_3d_unmatched
-            )
+        threshold_3d = probability_threshold(
+            "score_threshold_3d",
+            self.score_threshold_3d if score_threshold_3d is None else score_threshold_3d,
+        )
 
         timings: dict[str, float] = {}
         mark = time.perf_counter()
@@ -212,10 +216,7 @@ class Labeler:
         detections_2d = detections_2d[detections_2d.scores > threshold_2d]
         detections_3d = detections_3d[detections_3d.scores > threshold_3d]
         image_size = (int(image.shape[1]), int(image.shape[0]))
-        labels = match_detections(
-            detections_3d, detections_2d, calib, image_size, tau_hung, tau_outside,
-            tau_unmatched,
-        )  # fmt: skip
+        labels = match_detections(detections_3d, detections_2d, calib, image_size, policy)
         end = time.perf_counter()
         timings["matching"] = end - mark
         timings["total"] = end - start
@@ -227,11 +228,11 @@ class Labeler:
             detections_2d=detections_2d,
             detections_3d=detections_3d,
             thresholds={
-                "tau_hung": tau_hung,
+                "tau_hung": policy.tau_hung,
                 "score_threshold_2d": threshold_2d,
                 "score_threshold_3d": threshold_3d,
-                "tau_3d_outside_view": tau_outside,
-                "tau_3d_unmatched": tau_unmatched,
+                "tau_3d_outside_view": policy.tau_3d_outside_view,
+                "tau_3d_unmatched": policy.tau_3d_unmatched,
             },
             timings=timings,
         )
@@ -268,18 +269,3 @@ def _detections(outputs: list[np.ndarray]) -> Detections:
         classes.astype(np.int64),
         probabilities.astype(np.float64),
     )
-
-
-def _override(name: str, value: float | None, default: float) -> float:
-    if value is None:
-        return default
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ValueError(f"{name}: expected a finite number, got {value!r}")
-    return float(value)
-
-
-def _probability(name: str, value: float | None, default: float | None) -> float:
-    value = _override(name, value, default)
-    if not 0.0 <= value < 1.0:
-        raise ValueError(f"{name}: expected a probability threshold in [0, 1), got {value}")
-    return value

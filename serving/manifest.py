@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from detmatch.files import write_json
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.pillars import PillarGrid
 from detmatch.records import RecordError, from_plain, to_plain
 
@@ -165,12 +166,16 @@ class Models:
     detector3d: Model3DSpec
 
 
+# What applies the matching policy; the manifest names it.
+MATCHING_FUNCTION = "detmatch.pseudo_labels.match_detections"
+
+
 @dataclass(frozen=True)
 class MatchingSpec:
-    """tau_hung: the matching threshold; tau_3d_outside_view: the score above which 3D boxes
-    outside the camera's view become LiDAR-only labels (None: no fallback); tau_3d_unmatched:
-    the score above which in-view 3D boxes left unmatched do (None, or absent from older
-    manifests: only matched objects in view)."""
+    """The matching policy (`detmatch.matching_policy.MatchingPolicy`) as the manifest stores
+    it, in the keys every format has had: tau_hung; tau_3d_outside_view (null: no fallback);
+    tau_3d_unmatched (null, or absent from older manifests: only matched objects in view);
+    function: what applies it. The policy checks the values."""
 
     tau_hung: float
     tau_3d_outside_view: float | None
@@ -178,10 +183,20 @@ class MatchingSpec:
     tau_3d_unmatched: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("tau_3d_outside_view", "tau_3d_unmatched"):
-            value = getattr(self, name)
-            if value is not None and not 0.0 <= value < 1.0:
-                raise ValueError(f"{name} must be in [0, 1) or null, got {value}")
+        _ = self.policy  # MatchingPolicy checks the values
+
+    @property
+    def policy(self) -> MatchingPolicy:
+        return MatchingPolicy(self.tau_hung, self.tau_3d_outside_view, self.tau_3d_unmatched)
+
+    @staticmethod
+    def of(policy: MatchingPolicy) -> MatchingSpec:
+        return MatchingSpec(
+            tau_hung=policy.tau_hung,
+            tau_3d_outside_view=policy.tau_3d_outside_view,
+            function=MATCHING_FUNCTION,
+            tau_3d_unmatched=policy.tau_3d_unmatched,
+        )
 
 
 @dataclass(frozen=True)

@@ -3,11 +3,13 @@ import pytest
 
 from detmatch.data.kitti import read_calib
 from detmatch.geometry import project_boxes_to_image
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.pseudo_labels import Provenance, confident_detections, match_detections
 from detmatch.structures import Detections
 from tests.conftest import KITTI_SAMPLE
 
 IMAGE = (1242, 375)
+PAPER = MatchingPolicy()  # tau_hung -1.5, outside-view fallback 0.3, no in-view LiDAR-only
 
 
 @pytest.fixture(scope="module")
@@ -31,16 +33,18 @@ def test_only_objects_both_sensors_agree_on_become_labels(calib):
     car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)[0] + [2, -1, -3, 2]
     det_2d = detections([car_2d], [[0.85, 0.05, 0.1]])
 
-    labels = match_detections(det_3d, det_2d, calib, IMAGE)
+    labels = match_detections(det_3d, det_2d, calib, IMAGE, PAPER)
     assert labels.provenance.tolist() == [Provenance.MATCHED, Provenance.LIDAR_ONLY_OUTSIDE_VIEW]
     assert labels.index_3d.tolist() == [0, 2] and labels.index_2d.tolist() == [0, -1]
     np.testing.assert_array_equal(labels.boxes_2d[0], car_2d)
     assert labels.cost[0] < -1.5 and np.isnan(labels.cost[1])
     assert labels.class_3d.tolist() == [0, 0] and labels.class_2d.tolist() == [0, -1]
 
-    no_fallback = match_detections(det_3d, det_2d, calib, IMAGE, tau_3d_outside_view=None)
+    no_fallback = match_detections(
+        det_3d, det_2d, calib, IMAGE, MatchingPolicy(tau_3d_outside_view=None)
+    )
     assert no_fallback.provenance.tolist() == [Provenance.MATCHED]
-    strict = match_detections(det_3d, det_2d, calib, IMAGE, tau_hung=-10.0)
+    strict = match_detections(det_3d, det_2d, calib, IMAGE, MatchingPolicy(tau_hung=-10.0))
     assert strict.matched.sum() == 0
 
 
@@ -58,7 +62,7 @@ def test_confident_unmatched_3d_detections_in_view_can_become_lidar_only_labels(
     det_2d = detections([project_boxes_to_image(np.array([car]), calib, IMAGE)[0]],
                         [[0.85, 0.05, 0.1]])  # fmt: skip
 
-    labels = match_detections(det_3d, det_2d, calib, IMAGE, tau_3d_unmatched=0.6)
+    labels = match_detections(det_3d, det_2d, calib, IMAGE, MatchingPolicy(tau_3d_unmatched=0.6))
     assert labels.provenance.tolist() == [
         Provenance.MATCHED, Provenance.LIDAR_ONLY_OUTSIDE_VIEW, Provenance.LIDAR_ONLY_CONFIDENT,
     ]  # fmt: skip
@@ -67,19 +71,19 @@ def test_confident_unmatched_3d_detections_in_view_can_become_lidar_only_labels(
     assert np.isnan(labels.boxes_2d[2]).all() and np.isnan(labels.cost[2])
     # The faint one (0.4) stays out at 0.6 and comes in at 0.3; None is the paper's rule.
     assert match_detections(
-        det_3d, det_2d, calib, IMAGE, tau_3d_unmatched=0.3
+        det_3d, det_2d, calib, IMAGE, MatchingPolicy(tau_3d_unmatched=0.3)
     ).index_3d.tolist() == [0, 3, 1, 2]
-    assert match_detections(det_3d, det_2d, calib, IMAGE).index_3d.tolist() == [0, 3]
+    assert match_detections(det_3d, det_2d, calib, IMAGE, PAPER).index_3d.tolist() == [0, 3]
     # A box the matching paired is never counted twice, however confident.
     assert match_detections(
-        det_3d, det_2d, calib, IMAGE, tau_3d_unmatched=0.0
+        det_3d, det_2d, calib, IMAGE, MatchingPolicy(tau_3d_unmatched=0.0)
     ).index_3d.tolist() == [0, 3, 1, 2]
 
 
 def test_no_detections(calib):
     empty = Detections(np.zeros((0, 7)), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
     empty_2d = Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
-    labels = match_detections(empty, empty_2d, calib, IMAGE)
+    labels = match_detections(empty, empty_2d, calib, IMAGE, PAPER)
     assert len(labels) == 0 and labels.boxes_3d.shape == (0, 7) and labels.boxes_2d.shape == (0, 4)
 
 
@@ -96,51 +100,15 @@ def test_label_classes_are_the_argmax_of_the_probabilities(calib):
     det_3d = Detections(np.array([car]), np.array([0.35]), np.array([0]), probabilities)
     car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)
     det_2d = Detections(car_2d, np.array([0.6]), np.array([1]), np.array([[0.1, 0.6, 0.95]]))
-    labels = match_detections(det_3d, det_2d, calib, IMAGE)
+    labels = match_detections(det_3d, det_2d, calib, IMAGE, PAPER)
     assert labels.class_3d.tolist() == [2] and labels.class_2d.tolist() == [2]
 
 
-def test_detmatch_can_ignore_confident_unmatched_detections(calib):
-    """With an ignore score, each teacher's unmatched detections above it are handed over as
-    ignore regions (neither labels nor background); matched and unconfident ones are not."""
-    from detmatch.training.rules import DetMatchRule
-
-    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
-    person = [12.0, -4.0, -0.8, 0.6, 0.6, 1.8, 0.0]  # the camera does not see it
-    faint = [20.0, 5.0, -0.8, 0.6, 0.6, 1.8, 0.0]
-    det_3d = detections([car, person, faint], [[0.8, 0.1, 0.1], [0.1, 0.6, 0.1], [0.1, 0.2, 0.1]])
-    car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)[0]
-    rider_2d = [100.0, 150.0, 130.0, 230.0]  # the LiDAR does not see it
-    det_2d = detections([car_2d, rider_2d], [[0.85, 0.05, 0.1], [0.1, 0.1, 0.5]])
-
-    def rule(score_3d, score_2d):
-        return DetMatchRule(-1.5, 0.3, 4.0, False, ignore_score_3d=score_3d,
-                            ignore_score_2d=score_2d)  # fmt: skip
-
-    labels = rule(0.3, 0.3).frame_labels(det_2d, det_3d, calib, IMAGE)
-    np.testing.assert_array_equal(labels.labels_3d.boxes, [car])
-    np.testing.assert_array_equal(labels.ignore_3d.boxes, [person])
-    np.testing.assert_array_equal(labels.ignore_2d.boxes, [rider_2d])
-    assert labels.ignore_3d.classes.tolist() == [1] and labels.ignore_2d.classes.tolist() == [2]
-    paper = rule(1.0, 1.0).frame_labels(det_2d, det_3d, calib, IMAGE)  # the default: background
-    assert len(paper.ignore_3d) == len(paper.ignore_2d) == 0
-    np.testing.assert_array_equal(paper.labels_3d.boxes, labels.labels_3d.boxes)
-    # Each modality has its own score: here only the 3D teacher's unmatched boxes are ignored.
-    lidar_only = rule(0.3, 1.0).frame_labels(det_2d, det_3d, calib, IMAGE)
-    np.testing.assert_array_equal(lidar_only.ignore_3d.boxes, [person])
-    assert len(lidar_only.ignore_2d) == 0
-    # A LiDAR-only label is not also an ignore region.
-    kept = DetMatchRule(-1.5, 0.3, 4.0, False, tau_3d_unmatched=0.5, ignore_score_3d=0.3)
-    kept_labels = kept.frame_labels(det_2d, det_3d, calib, IMAGE)
-    np.testing.assert_array_equal(kept_labels.labels_3d.boxes, [car, person])
-    assert kept_labels.labels_3d.classes.tolist() == [0, 1] and len(kept_labels.ignore_3d) == 0
-    np.testing.assert_array_equal(kept_labels.labels_2d.boxes, labels.labels_2d.boxes)
-
-
-def test_detmatch_can_keep_lidar_only_labels_out_of_the_2d_background(calib):
-    """lidar_only_ignore_2d: the in-view LiDAR-only labels' image projections join the 2D ignore
-    regions (the 2D student learns no background where only the LiDAR saw something); the
-    2D labels stay the matched pairs and outside-view fallbacks, not in the image, add none."""
+def test_detmatch_keeps_lidar_only_labels_out_of_the_2d_background(calib):
+    """The in-view LiDAR-only labels' image projections are the 2D ignore regions (the 2D
+    student learns no background where only the LiDAR saw something); the 2D labels stay the
+    matched pairs, outside-view fallbacks (not in the image) add none, and every other
+    unmatched detection is background."""
     from detmatch.training.rules import DetMatchRule
 
     car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
@@ -149,16 +117,11 @@ def test_detmatch_can_keep_lidar_only_labels_out_of_the_2d_background(calib):
     det_3d = detections([car, person, far_behind],
                         [[0.8, 0.1, 0.1], [0.1, 0.7, 0.1], [0.5, 0.1, 0.1]])  # fmt: skip
     car_2d = project_boxes_to_image(np.array([car]), calib, IMAGE)[0]
-    rider_2d = [100.0, 150.0, 130.0, 230.0]  # unmatched 2D, above the 2D ignore score
+    rider_2d = [100.0, 150.0, 130.0, 230.0]  # unmatched 2D: background
     det_2d = detections([car_2d, rider_2d], [[0.85, 0.05, 0.1], [0.1, 0.1, 0.5]])
 
-    def rule(protect, ignore_score_2d=1.0):
-        return DetMatchRule(
-            -1.5, 0.3, 4.0, False, tau_3d_unmatched=0.6, ignore_score_2d=ignore_score_2d,
-            lidar_only_ignore_2d=protect,
-        )  # fmt: skip
-
-    protected = rule(True).frame_labels(det_2d, det_3d, calib, IMAGE)
+    rule = DetMatchRule(MatchingPolicy(tau_3d_unmatched=0.6), 4.0, False)
+    protected = rule.frame_labels(det_2d, det_3d, calib, IMAGE)
     person_2d = project_boxes_to_image(np.array([person]), calib, IMAGE)
     assert (person_2d[:, 2:] > person_2d[:, :2]).all()  # it lands in the image
     np.testing.assert_allclose(protected.ignore_2d.boxes, person_2d)
@@ -166,11 +129,7 @@ def test_detmatch_can_keep_lidar_only_labels_out_of_the_2d_background(calib):
     np.testing.assert_allclose(protected.ignore_2d.probabilities, [[0.1, 0.7, 0.1]])
     np.testing.assert_array_equal(protected.labels_2d.boxes, [car_2d])
     np.testing.assert_array_equal(protected.labels_3d.boxes, [car, far_behind, person])
-    assert len(protected.ignore_3d) == 0
-    plain = rule(False).frame_labels(det_2d, det_3d, calib, IMAGE)
-    assert len(plain.ignore_2d) == 0
-    np.testing.assert_array_equal(plain.labels_3d.boxes, protected.labels_3d.boxes)
-    # Beside the 2D teacher's own unmatched detections when both are on.
-    both = rule(True, ignore_score_2d=0.3).frame_labels(det_2d, det_3d, calib, IMAGE)
-    np.testing.assert_allclose(both.ignore_2d.boxes, [rider_2d, person_2d[0]])
-    assert both.ignore_2d.classes.tolist() == [2, 1]
+    # The paper's policy makes no in-view LiDAR-only labels, so no ignore regions.
+    paper = DetMatchRule(PAPER, 4.0, False).frame_labels(det_2d, det_3d, calib, IMAGE)
+    assert len(paper.ignore_2d) == 0
+    np.testing.assert_array_equal(paper.labels_3d.boxes, [car, far_behind])

@@ -5,10 +5,11 @@ import numpy as np
 import onnx
 import pytest
 
+from commands.export import main as export_main
 from detmatch.checkpoints import resolve_checkpoint
 from detmatch.data.kitti import KittiDataset
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.build import load_detectors
-from export.cli import main as export_main
 from export.onnx_export import export_checkpoint
 from export.parity import ParityError, PeakTies, Tolerance, check_parity, compare_decoded
 from serving.manifest import FileRecord, PillarGridSpec, TensorSpec
@@ -61,10 +62,11 @@ def test_manifest_describes_models_thresholds_training_and_files(exported_reposi
     assert spec_2d.score_threshold == spec_3d.score_threshold == 0.1
     assert manifest.matching.tau_hung == -1.5
     assert manifest.matching.tau_3d_outside_view == 0.3
-    # The training's in-view LiDAR-only rule, as match_detections takes it (1.0 in the config:
-    # off, None; the default 0.6).
+    # The training's in-view LiDAR-only rule, as the policy holds it (1.0 in the config: off,
+    # None; the default 0.6).
     unmatched = manifest.training.config["ssl"]["tau_3d_unmatched"]
     assert manifest.matching.tau_3d_unmatched == (None if unmatched == 1.0 else unmatched) == 0.6
+    assert manifest.matching.policy == MatchingPolicy(-1.5, 0.3, 0.6)
     training = manifest.training
     assert training.step == 6 and tuple(training.data["classes"]) == manifest.classes
     assert len(training.checkpoint_sha256) == 64

@@ -10,6 +10,7 @@ import pytest
 from detmatch.data.dataset import collate, make_sample
 from detmatch.data.kitti import KittiDataset
 from detmatch.inference import predict_batch
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.build import load_detectors
 from detmatch.pseudo_labels import MatchedLabels, Provenance, match_detections
 from export.parity import Tolerance, check_parity
@@ -69,17 +70,20 @@ def test_labels_equal_the_pytorch_pipeline(
     config, model_2d, model_3d = loaded.config, loaded.model_2d, loaded.model_3d
     labeler = Labeler.from_repository(exported_repository)
     grid = model_3d.grid
-    tau_hung = overrides.get("tau_hung", -1.5)
-    tau_outside = overrides.get("tau_3d_outside_view", 0.3)
-    # The manifest's, the training config's (LiDAR-only labels above 0.6 by default).
-    tau_unmatched = overrides.get("tau_3d_unmatched", labeler.tau_3d_unmatched)
-    assert labeler.tau_3d_unmatched == config.ssl.unmatched_3d_threshold
+    # The manifest's policy is the training config's (LiDAR-only labels above 0.6 by default).
+    assert labeler.policy == MatchingPolicy.from_config(config.ssl)
+    assert labeler.tau_3d_unmatched == config.ssl.tau_3d_unmatched == 0.6
+    policy = MatchingPolicy(
+        tau_hung=overrides.get("tau_hung", -1.5),
+        tau_3d_outside_view=overrides.get("tau_3d_outside_view", 0.3),
+        tau_3d_unmatched=overrides.get("tau_3d_unmatched", 0.6),
+    )
     provenances, tie_affected = [], []
     for frame in _frames(synth_root):
         sample = make_sample(frame, config.data.classes, config.data.image_size, grid, flip=False)
         detections_2d, detections_3d = predict_batch(model_2d, model_3d, collate([sample]))[0]
         expected = match_detections(detections_3d, detections_2d, frame.calib, frame.image_size,
-                                    tau_hung, tau_outside, tau_unmatched)  # fmt: skip
+                                    policy)  # fmt: skip
         result = labeler.label(frame.image, frame.points, frame.calib, **overrides)
         parity = check_parity(labeler.session_2d, labeler.session_3d, model_2d, model_3d, config,
                               [("frame", frame)], Tolerance())  # fmt: skip
@@ -182,7 +186,7 @@ def test_the_labeler_runs_where_torch_cannot_be_imported(exported_repository, sy
         labeler = Labeler.from_repository({str(exported_repository)!r},
                                           settings=serving.sessions.SessionSettings(1))
         result = labeler.label(frame.image, frame.points, frame.calib, tau_hung=50.0)
-        from detmatch.cli import main
+        from commands.main import main
         assert main(["label", "--repository", {str(exported_repository)!r},
                      "--data", {str(synth_root)!r}, "--split", "val",
                      "--out", {str(tmp_path / "labels")!r}]) == 0

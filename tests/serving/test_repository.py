@@ -7,11 +7,15 @@ from pathlib import Path
 import pytest
 
 from detmatch.files import sha256_file
+from detmatch.matching_policy import MatchingPolicy
+from detmatch.pseudo_labels import match_detections
 from detmatch.records import to_plain
 from serving.manifest import (
+    MATCHING_FUNCTION,
     GateFigures,
     Manifest,
     ManifestError,
+    MatchingSpec,
     RetrainingRecord,
     RoundData,
     gate_passes,
@@ -133,12 +137,14 @@ def test_the_manifest_round_trips_and_its_errors_name_the_field(tmp_path):
         Manifest.from_json(data)
     data = json.loads((path / "manifest.json").read_text())
     data["matching"]["tau_3d_unmatched"] = 1.0
-    with pytest.raises(ManifestError, match=r"matching: tau_3d_unmatched must be in \[0, 1\)"):
+    with pytest.raises(
+        ManifestError, match=r"matching: tau_3d_unmatched: expected a probability threshold in"
+    ):
         Manifest.from_json(data)
     del data["matching"]["tau_3d_unmatched"]  # a manifest from before the field: off
     assert Manifest.from_json(data).matching.tau_3d_unmatched is None
     data["matching"]["tau_3d_outside_view"] = 1.5
-    with pytest.raises(ManifestError, match=r"matching: tau_3d_outside_view must be in \[0, 1\)"):
+    with pytest.raises(ManifestError, match=r"matching: tau_3d_outside_view: expected a prob"):
         Manifest.from_json(data)
     del data["matching"]["function"]
     with pytest.raises(ManifestError, match="missing field 'function'"):
@@ -170,6 +176,41 @@ def _round_record(candidate: GateFigures, parent: GateFigures, passed: bool) -> 
     record = RetrainingRecord("r1", "000001", "2026-01-01T00:00:00Z", "detmatch", 10, 1.0,
                               candidate, parent, right, data, {})  # fmt: skip
     return {**to_plain(record), "passed": passed}
+
+
+def test_the_matching_policy_round_trips_through_the_manifest_in_the_keys_it_always_had(
+    tmp_path,
+):
+    """Export writes the policy as the `matching` table (the same keys and values as every
+    version before it), serving reads it back as the same policy; older tables still load."""
+    policy = MatchingPolicy(tau_hung=-2.0, tau_3d_outside_view=0.3, tau_3d_unmatched=0.6)
+    manifest = dataclasses.replace(
+        minimal_manifest("000001", {"model.onnx": file_record(_placeholder(tmp_path))}),
+        matching=MatchingSpec.of(policy),
+    )
+    manifest.save(tmp_path)
+    stored = json.loads((tmp_path / "manifest.json").read_text())["matching"]
+    assert list(stored.items()) == [
+        ("tau_hung", -2.0),
+        ("tau_3d_outside_view", 0.3),
+        ("function", "detmatch.pseudo_labels.match_detections"),
+        ("tau_3d_unmatched", 0.6),
+    ]
+    assert MATCHING_FUNCTION == f"{match_detections.__module__}.{match_detections.__name__}"
+    assert Manifest.load(tmp_path).matching.policy == policy
+    # A table written before tau_3d_unmatched, with the fallback off: the paper's matching only.
+    old = {"tau_hung": -1.5, "tau_3d_outside_view": None, "function": MATCHING_FUNCTION}
+    data = {**manifest.to_json(), "matching": old}
+    assert Manifest.from_json(data).matching.policy == MatchingPolicy(-1.5, None, None)
+    data["matching"] = {**old, "tau_hung": float("nan")}
+    with pytest.raises(ManifestError, match="matching: tau_hung: expected a finite number"):
+        Manifest.from_json(data)
+
+
+def _placeholder(directory: Path) -> Path:
+    path = directory / "model.onnx"
+    path.write_bytes(b"model")
+    return path
 
 
 def test_manifest_format_1_is_read_and_format_2_fields_are_checked(tmp_path):
