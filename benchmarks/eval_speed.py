@@ -204,7 +204,7 @@ def main() -> None:
     print(f"numba first call, warm cache (load)     {warm:6.2f} s")
     print(
         f"rerun: python benchmarks/eval_speed.py --frames {args.frames} --seed {args.seed}"
-        f" --clutter {args.clutter:g}"
+        f" --clutter {args.clutter:g} --repeats {args.repeats}"
     )
 
 

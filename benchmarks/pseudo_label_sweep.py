@@ -1,8 +1,8 @@
 """Pseudo-label precision at equal recall: DetMatch's labels against confidence thresholding
 swept over its threshold, per class and modality.
 
-    python benchmarks/pseudo_label_sweep.py runs/long_s1/pretrain \
-        --split train_unlabeled_0.05_s1_dev0.1
+    python -m benchmarks.pseudo_label_sweep runs/long_s1/pretrain \
+        --split train_unlabeled_0.05_s1_dev0.1          # from the repository's root
 
 ssl_benchmark.py's pseudo-label table compares the two rules at their configured thresholds
 (tau_3D, tau_2D). At tau_2D = 0.7 confidence thresholding passes a few near-certain 2D boxes,
@@ -21,6 +21,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from benchmarks.ssl_benchmark import (
+    IOU_2D,
+    IOU_3D,
+    modality_labels,
+    pseudo_label_sets,
+    teacher_frames,
+)
 from detmatch.config import apply_overrides, load_config
 from detmatch.data.dataset import FrameDataset
 from detmatch.eval.pseudo_labels import MODALITIES, pseudo_label_quality
@@ -28,15 +35,6 @@ from detmatch.geometry import boxes_touching_image
 from detmatch.models.build import load_detectors
 from detmatch.pseudo_labels import confident_detections
 from detmatch.structures import Labels
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ssl_benchmark import (  # noqa: E402
-    IOU_2D,
-    IOU_3D,
-    modality_labels,
-    pseudo_label_sets,
-    teacher_frames,
-)
 
 THRESHOLDS = tuple(round(0.02 * k, 2) for k in range(1, 50))
 PRINTED = tuple(round(0.1 * k, 1) for k in range(1, 10))
@@ -121,8 +119,7 @@ def main() -> None:
             for c in classes
         ]
         print(f"| {t:.2f} | " + " | ".join(cells) + " |")
-    rerun = f"python benchmarks/pseudo_label_sweep.py {args.checkpoint} --split {args.split}"
-    print(f"\nrerun: {rerun} --data {args.data} --frames {args.frames}")
+    print("\nrerun: python -m benchmarks.pseudo_label_sweep " + " ".join(sys.argv[1:]))
 
 
 if __name__ == "__main__":

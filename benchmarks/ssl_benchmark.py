@@ -51,7 +51,6 @@ from detmatch.config import (
     load_config,
     teacher_student_config,
 )
-from detmatch.constants import TAU_3D
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.kitti import read_image_set, write_image_set
 from detmatch.data.splits import dev_name, make_split, split_names
@@ -67,6 +66,7 @@ from detmatch.geometry import (
 )
 from detmatch.inference import predict_batch
 from detmatch.matching import matching_cost
+from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.build import LoadedDetectors, build_detectors, load_detectors
 from detmatch.pseudo_labels import confident_detections, match_detections
 from detmatch.structures import Boxes2D, Boxes3D, Detections, Labels
@@ -79,16 +79,16 @@ from detmatch.training.trainer import SupervisedTrainer
 # benchmark's config. "detmatch" is the defaults (what won on dev: LiDAR-only labels above 0.6
 # with the 2D side protected); "detmatch-paper" the paper's constants (a named preset);
 # "detmatch-matched-only" the paper's rule on the defaults (the default before 2026-12-05); the
-# paper's Table 6 ablations set both consistency switches and keep the other defaults.
+# paper's Table 6 ablations set both consistency switches and keep the other defaults. The
+# variants dev turned down (ignore regions, unprotected LiDAR-only labels, the authors'
+# per-frame means with candidate NMS) went with their options; commit 651fd4f has them.
 DETMATCH = "ssl.method=detmatch"
 METHODS: dict[str, tuple[str, ...]] = {
     "control": ("ssl.method=labeled-only-control",),
     "confidence": ("ssl.method=confidence",),
     "detmatch": (DETMATCH,),
     "detmatch-paper": PRESETS["paper"],
-    "detmatch-matched-only": (
-        DETMATCH, "ssl.tau_3d_unmatched=1.0", "ssl.lidar_only_ignore_2d=false",
-    ),
+    "detmatch-matched-only": (DETMATCH, "ssl.tau_3d_unmatched=1.0"),
     "detmatch-matching-only": (
         DETMATCH, "ssl.consistency_class=false", "ssl.consistency_box=false",
     ),
@@ -106,31 +106,6 @@ METHODS: dict[str, tuple[str, ...]] = {
     "detmatch-refine": (
         DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",
         "detector3d.refine=true",
-    ),
-    # Each teacher's unmatched detections above tau_3D are ignored, not background.
-    "detmatch-ignore": (
-        DETMATCH, f"ssl.ignore_unmatched_score_3d={TAU_3D}",
-        f"ssl.ignore_unmatched_score_2d={TAU_3D}",
-    ),
-    # Only the 3D teacher's: the LiDAR finds the people the camera misses, while the camera's
-    # unmatched detections are mostly its false positives, which the 2D student should unlearn.
-    "detmatch-ignore-3d": (DETMATCH, f"ssl.ignore_unmatched_score_3d={TAU_3D}"),
-    # In-view 3D teacher detections the camera did not confirm become LiDAR-only pseudo-labels
-    # above 0.6: on dev, the pre-trained teacher's 3D pseudo-label F1 peaks there in every class
-    # (BENCHMARKS.md, "LiDAR-only pseudo-labels in view").
-    "detmatch-lidar-confident": (
-        DETMATCH, "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=false",
-    ),
-    # The same labels, with the 2D side protected: their image projections are not taught as
-    # background to the 2D student (the camera was silent where the LiDAR is confident). The
-    # defaults since 2026-12-05 ("detmatch"), spelled out for the dev record's runs.
-    "detmatch-lidar-confident-2d-ignore": (
-        DETMATCH, "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=true",
-    ),
-    # The authors' normalisations: per-frame consistency means, NMS on the student's candidates.
-    "detmatch-frames-nms": (
-        DETMATCH, "ssl.consistency_class=true", "ssl.consistency_box=true",
-        "ssl.consistency_reduction=frames", "ssl.consistency_nms=true",
     ),
     # Not a method: the control trained on every label of the labeled and unlabeled frames (dev
     # held out), the stage's schedule from the same weights: what it gives with right labels.
@@ -234,9 +209,8 @@ def pseudo_label_sets(
     in_view = boxes_touching_image(det_3d.boxes, sample.calib, size)
     confident_3d = confident_detections(det_3d[in_view], ssl.tau_3d)
     confident_2d = confident_detections(det_2d, ssl.tau_2d)
-    matched = match_detections(
-        det_3d, det_2d, sample.calib, size, ssl.tau_hung, None, ssl.unmatched_3d_threshold
-    )
+    policy = MatchingPolicy.from_config(ssl).with_overrides(outside_view_fallback=False)
+    matched = match_detections(det_3d, det_2d, sample.calib, size, policy)
     pairs = matched.matched  # the 2D labels: LiDAR-only rows have none
     return {
         "confidence": modality_labels(

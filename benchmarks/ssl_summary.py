@@ -170,7 +170,9 @@ def main() -> None:
                 cells = [f"{row['2d']:.1f} / {row['3d']:.1f}" for row in rows]
                 print(f"| {name} | {level} | " + " | ".join(cells) + " |")
     print_targets(reports, results, names, classes, args.method, args.split)
-    print("\nrerun: python benchmarks/ssl_summary.py " + " ".join(map(str, args.reports)))
+    reports = " ".join(map(str, args.reports))
+    print(f"\nrerun: python benchmarks/ssl_summary.py {reports} --split {args.split} "
+          f"--method {args.method}")  # fmt: skip
 
 
 def print_targets(

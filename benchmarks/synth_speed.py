@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'resolution':<11}{'workers':>8}{'seconds':>10}{'frames/s':>10}{'per worker':>12}")
     for resolution, workers, seconds, rate in rows:
         print(f"{resolution:<11}{workers:>8}{seconds:>10.2f}{rate:>10.2f}{rate / workers:>12.2f}")
-    command = f"python benchmarks/synth_speed.py --frames {args.frames}"
+    command = f"python benchmarks/synth_speed.py --frames {args.frames} --seed {args.seed}"
     print(f"\n{args.frames} frames each; rerun: {command}")
     return 0
 

@@ -17,12 +17,20 @@ import importlib.resources
 import math
 import sys
 import typing
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from detmatch.constants import SCORE_THRESHOLD, TAU_2D, TAU_3D, TAU_HUNG
+from detmatch.constants import (
+    CONSISTENCY_CLASS_WEIGHT,
+    CONSISTENCY_GIOU_WEIGHT,
+    CONSISTENCY_L1_WEIGHT,
+    SCORE_THRESHOLD,
+    TAU_2D,
+    TAU_3D,
+    TAU_HUNG,
+)
 from detmatch.records import RecordError, coerce, to_plain
 
 if sys.version_info >= (3, 11):
@@ -99,9 +107,6 @@ DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "fp32", "bf16")
 SCHEDULES_2D = ("constant", "step")
 SCHEDULES_3D = ("constant", "onecycle")
-CONSISTENCY_REDUCTIONS = ("pairs", "frames")
-PSEUDO_2D_NORMALIZERS = ("pseudo-labels", "labeled")
-CONSISTENCY_TARGETS = ("teacher", "labels-projected", "labels-annotated")
 
 
 @dataclass(frozen=True)
@@ -329,51 +334,23 @@ class SemiSupervisedConfig:
     pseudo_label_weight: float = 1.0
     # DetMatch weights the 2D pseudo-label (classification) loss x4 relative to the 3D one.
     detmatch_2d_pseudo_weight: float = 4.0
-    # 3D boxes outside the camera's view fall back to confidence thresholding (tau_3d).
-    fov_fallback: bool = True
     # DetMatch: in-view 3D teacher detections the matching leaves unmatched whose max class
     # probability exceeds this become LiDAR-only pseudo-labels (the camera misses occluded and
     # small objects the LiDAR sees). 1.0: off (the paper: only matched objects in view). 0.6
-    # (with lidar_only_ignore_2d) won on dev over three split seeds: +1.3 3D mAP, +0.1 2D mAP
-    # against the paper's rule (BENCHMARKS.md, "LiDAR-only pseudo-labels with the 2D side
-    # protected"); 0.6 is where dev's 3D pseudo-label F1 peaks in every class.
+    # won on dev over three split seeds: +1.3 3D mAP, +0.1 2D mAP against the paper's rule
+    # (BENCHMARKS.md, "LiDAR-only pseudo-labels with the 2D side protected"); 0.6 is where dev's
+    # 3D pseudo-label F1 peaks in every class. Their image projections are ignore regions of the
+    # 2D student (no background where the LiDAR is confident and the camera was silent).
     tau_3d_unmatched: float = 0.6
-    # DetMatch: the image projections of those LiDAR-only labels become ignore regions of the
-    # 2D student (no background where the LiDAR is confident and the camera was silent); no
-    # effect while tau_3d_unmatched is 1.0. Off: the paper's rule (every unmatched place is 2D
-    # background).
-    lidar_only_ignore_2d: bool = True
-    # DetMatch: the 3D (2D) teacher's unmatched detections whose max class probability exceeds
-    # this are neither pseudo-labels nor background: the 3D (2D) student learns no background
-    # around them. 1.0: off (the paper: every unmatched detection is background).
-    ignore_unmatched_score_3d: float = 1.0
-    ignore_unmatched_score_2d: float = 1.0
     # Switches of the 2D-teacher -> 3D-student consistency loss. Off by default: on dev its box
     # term, on the dense head, shortened cars and cost 2.7 3D mAP against matching only, which
     # tied it routed into [detector3d] refine (BENCHMARKS.md, issue 14); PRESETS["paper"] and
     # `--preset paper` turn both on.
     consistency_class: bool = False
     consistency_box: bool = False
-    consistency_class_weight: float = 2.0
-    consistency_l1_weight: float = 20.0
-    consistency_giou_weight: float = 2.0
-    # How the consistency loss is reduced: "pairs" (every matched pair of the batch alike,
-    # focal summed over classes) or "frames" (the authors' code: focal a mean over N x C, each
-    # term a per-frame mean, then a mean over the frames with matches).
-    consistency_reduction: str = "pairs"
-    # The authors' candidate filter before the consistency matching: BEV NMS at IoU 0.1 of the
-    # 3D student's boxes (score > the detector's threshold), then 2D NMS at 0.5 on their
-    # projections.
-    consistency_nms: bool = False
-    # What the 2D pseudo-label heatmap loss is averaged over: "pseudo-labels" (their own peaks)
-    # or "labeled" (the labeled half's objects, so that a few pseudo-labels do not multiply
-    # the weight of every background cell).
-    pseudo_2d_normalizer: str = "pseudo-labels"
-    # Diagnostics only, with a labeled [ssl] unlabeled_split: the consistency loss's 2D targets
-    # are the frames' labels instead of the 2D teacher's matched boxes ("labels-projected": the
-    # 3D labels projected; "labels-annotated": the label files' 2D boxes). "teacher" is the
-    # method.
-    consistency_targets: str = "teacher"
+    consistency_class_weight: float = CONSISTENCY_CLASS_WEIGHT
+    consistency_l1_weight: float = CONSISTENCY_L1_WEIGHT
+    consistency_giou_weight: float = CONSISTENCY_GIOU_WEIGHT
     # The teacher-student stage's own schedule (every method but labeled-only), which
     # `teacher_student_config` puts in [train] for the run: `steps` steps at these rates,
     # constant after a `warmup_steps` linear warm-up; [train]'s steps, rates and schedules are
@@ -393,27 +370,16 @@ class SemiSupervisedConfig:
 
     SECTION: ClassVar[str] = "ssl"
 
-    @property
-    def unmatched_3d_threshold(self) -> float | None:
-        """tau_3d_unmatched as `match_detections` takes it: None when off (1.0)."""
-        return self.tau_3d_unmatched if self.tau_3d_unmatched < 1.0 else None
-
     def __post_init__(self) -> None:
         check = _Checks(self)
         check.one_of("method", METHODS)
         check.name("unlabeled_split")
-        check.probability(
-            "tau_3d", "tau_2d", "tau_3d_unmatched", "ignore_unmatched_score_3d",
-            "ignore_unmatched_score_2d",
-        )  # fmt: skip
+        check.probability("tau_3d", "tau_2d", "tau_3d_unmatched")
         check.finite("tau_hung")
         check.non_negative("pseudo_label_weight", "detmatch_2d_pseudo_weight")
         check.non_negative(
             "consistency_class_weight", "consistency_l1_weight", "consistency_giou_weight"
         )
-        check.one_of("consistency_reduction", CONSISTENCY_REDUCTIONS)
-        check.one_of("pseudo_2d_normalizer", PSEUDO_2D_NORMALIZERS)
-        check.one_of("consistency_targets", CONSISTENCY_TARGETS)
         check.positive("ema_offset", "steps", "lr_2d", "lr_3d")
         check.non_negative("warmup_steps")
         check.below_one("ema_max_decay")
@@ -480,7 +446,42 @@ class ExperimentConfig:
         return dataclasses.replace(self, **{section: _build(section_type, current, section)})
 
 
+# Keys deleted from the config once dev had decided them (issue 40), each with a test of whether
+# a value is what the code still does: a saved run's config (a checkpoint, a retraining round's
+# state) holding one loads as before; another value is an error naming the commit that has it.
+RETIRED_AT = "651fd4f"
+RETIRED_KEYS: dict[tuple[str, str], Callable[[Any, dict[str, Any]], bool]] = {
+    ("ssl", "fov_fallback"): lambda value, _: value is True,
+    ("ssl", "consistency_reduction"): lambda value, _: value == "pairs",
+    ("ssl", "consistency_nms"): lambda value, _: value is False,
+    ("ssl", "pseudo_2d_normalizer"): lambda value, _: value == "pseudo-labels",
+    ("ssl", "consistency_targets"): lambda value, _: value == "teacher",
+    ("ssl", "ignore_unmatched_score_3d"): lambda value, _: value == 1.0,
+    ("ssl", "ignore_unmatched_score_2d"): lambda value, _: value == 1.0,
+    # Off made no difference without LiDAR-only labels (the paper preset's tau_3d_unmatched 1.0).
+    ("ssl", "lidar_only_ignore_2d"): lambda value, section: (
+        value is True
+        or section.get("tau_3d_unmatched", SemiSupervisedConfig.tau_3d_unmatched) >= 1.0
+    ),
+}
+
+
+def _without_retired(section: str, values: dict[str, Any]) -> dict[str, Any]:
+    kept = {}
+    for key, value in values.items():
+        still_done = RETIRED_KEYS.get((section, key))
+        if still_done is None:
+            kept[key] = value
+        elif not still_done(value, values):
+            raise ConfigError(
+                f"[{section}] {key} = {value!r} is no longer an option (dev decided it; "
+                f"BENCHMARKS.md): commit {RETIRED_AT} has it"
+            )
+    return kept
+
+
 def _build(section_type: type, values: dict[str, Any], section: str) -> Any:
+    values = _without_retired(section, values)
     hints = typing.get_type_hints(section_type)
     known = {f.name for f in dataclasses.fields(section_type)}
     for key in values:
@@ -606,18 +607,16 @@ def parse_override(text: str) -> tuple[str, str, Any]:
 
 # Named DetMatch settings (`detmatch train --preset NAME`, the benchmark's method rows): override
 # lists applied after the config file and --set. "paper": the paper's constants and loss as
-# published (both consistency terms on the 3D detector's only box regressor, pairs averaged),
-# what the defaults were before dev chose otherwise (BENCHMARKS.md, issue 14).
+# published (both consistency terms on the 3D detector's only box regressor, pairs averaged;
+# only matched objects in view, so no LiDAR-only labels and no 2D ignore regions), what the
+# defaults were before dev chose otherwise (BENCHMARKS.md, issue 14).
 PRESETS: dict[str, tuple[str, ...]] = {
     "paper": (
         "ssl.method=detmatch", f"ssl.tau_hung={TAU_HUNG}", "ssl.consistency_class=true",
-        "ssl.consistency_box=true", "ssl.consistency_class_weight=2.0",
-        "ssl.consistency_l1_weight=20.0", "ssl.consistency_giou_weight=2.0",
-        "ssl.consistency_reduction=pairs", "ssl.consistency_nms=false",
-        "ssl.pseudo_2d_normalizer=pseudo-labels", "ssl.tau_3d_unmatched=1.0",
-        "ssl.lidar_only_ignore_2d=false",
-        "ssl.ignore_unmatched_score_3d=1.0",
-        "ssl.ignore_unmatched_score_2d=1.0", "detector3d.refine=false",
+        "ssl.consistency_box=true", f"ssl.consistency_class_weight={CONSISTENCY_CLASS_WEIGHT}",
+        f"ssl.consistency_l1_weight={CONSISTENCY_L1_WEIGHT}",
+        f"ssl.consistency_giou_weight={CONSISTENCY_GIOU_WEIGHT}",
+        "ssl.tau_3d_unmatched=1.0", "detector3d.refine=false",
     ),
 }  # fmt: skip
 

@@ -451,17 +451,6 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return inside
 
 
-def greedy_nms(iou: np.ndarray, scores: np.ndarray, threshold: float) -> np.ndarray:
-    """Indices kept by greedy non-maximum suppression, best score first: a box is dropped when
-    its IoU (from the (N, N) matrix) with a kept box exceeds threshold."""
-    order = np.argsort(-np.asarray(scores), kind="stable")
-    kept: list[int] = []
-    for i in order:
-        if not kept or iou[i, kept].max() <= threshold:
-            kept.append(int(i))
-    return np.asarray(kept, dtype=np.int64)
-
-
 def nearest_in_bev(boxes: np.ndarray, others: np.ndarray, max_distance: float) -> np.ndarray:
     """(N,) row of the box of others (M, 7+) whose bird's-eye-view centre is nearest each box
     of boxes (N, 7+), when closer than max_distance metres; else -1."""

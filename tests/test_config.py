@@ -22,6 +22,7 @@ from detmatch.config import (
     refuse_pretraining_overrides,
     teacher_student_config,
 )
+from detmatch.matching_policy import MatchingPolicy
 from tests.conftest import REPO
 
 # (section, key, a value out of range): each must be refused with a message naming both.
@@ -68,9 +69,7 @@ OUT_OF_RANGE = [
     ("ssl", "method", "pseudo"),
     ("ssl", "tau_3d", 1.2),
     ("ssl", "tau_2d", -0.7),
-    ("ssl", "ignore_unmatched_score_3d", 1.5),
     ("ssl", "tau_3d_unmatched", 1.1),
-    ("ssl", "ignore_unmatched_score_2d", -0.1),
     ("ssl", "tau_hung", float("nan")),
     ("ssl", "pseudo_label_weight", -1.0),
     ("ssl", "consistency_l1_weight", -20.0),
@@ -95,13 +94,45 @@ def test_out_of_range_values_are_refused_naming_section_and_key(section, key, va
 
 
 def test_detmatch_defaults_are_what_won_on_dev():
-    """LiDAR-only labels above 0.6 with the 2D side protected (BENCHMARKS.md, issue 14); turning
-    the labels off alone is valid: the protection then has nothing to protect."""
+    """LiDAR-only labels above 0.6 (their 2D side protected: not an option) and no consistency
+    loss (BENCHMARKS.md, issue 14)."""
     ssl = load_config("tiny").ssl
-    assert ssl.unmatched_3d_threshold == 0.6 and ssl.lidar_only_ignore_2d
+    assert MatchingPolicy.from_config(ssl).tau_3d_unmatched == 0.6
     assert not ssl.consistency_box and not ssl.consistency_class
     off = apply_overrides(load_config("tiny"), ["ssl.tau_3d_unmatched=1.0"]).ssl
-    assert off.unmatched_3d_threshold is None and off.lidar_only_ignore_2d
+    assert MatchingPolicy.from_config(off).tau_3d_unmatched is None
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("consistency_reduction", "pairs"), ("consistency_nms", False),
+     ("pseudo_2d_normalizer", "pseudo-labels"), ("consistency_targets", "teacher"),
+     ("ignore_unmatched_score_3d", 1.0), ("ignore_unmatched_score_2d", 1.0),
+     ("lidar_only_ignore_2d", True)],
+)  # fmt: skip
+def test_a_saved_config_with_a_retired_key_loads_at_the_behaviour_kept(key, value):
+    """Runs saved before the options that dev decided were deleted (checkpoints, retraining
+    states) still load where they hold what the code still does; any other value is refused,
+    naming the commit that has the option."""
+    raw = config_to_dict(load_config("tiny"))
+    assert config_from_dict({**raw, "ssl": {**raw["ssl"], key: value}}) == load_config("tiny")
+    other = {"consistency_reduction": "frames", "consistency_nms": True,
+             "pseudo_2d_normalizer": "labeled", "consistency_targets": "labels-projected",
+             "ignore_unmatched_score_3d": 0.3, "ignore_unmatched_score_2d": 0.3,
+             "lidar_only_ignore_2d": False}[key]  # fmt: skip
+    with pytest.raises(ConfigError, match=rf"\[ssl\] {key} = .* commit 651fd4f has it"):
+        config_from_dict({**raw, "ssl": {**raw["ssl"], key: other}})
+    with pytest.raises(ConfigError, match=f"unknown key '{key}'"):
+        apply_overrides(load_config("tiny"), [f"ssl.{key}={other}"])
+
+
+def test_the_paper_presets_lidar_only_ignore_2d_false_still_loads():
+    """lidar_only_ignore_2d = false did nothing without LiDAR-only labels (tau_3d_unmatched 1.0,
+    the paper preset's runs)."""
+    raw = config_to_dict(load_config("tiny"))
+    ssl = {**raw["ssl"], "lidar_only_ignore_2d": False, "tau_3d_unmatched": 1.0}
+    loaded = config_from_dict({**raw, "ssl": ssl}).ssl
+    assert MatchingPolicy.from_config(loaded).tau_3d_unmatched is None
 
 
 def test_code_paths_get_the_same_checks():
@@ -225,19 +256,16 @@ def test_the_paper_preset_restores_the_published_method_whatever_the_config_says
     changed = apply_overrides(
         load_config("tiny"),
         ["ssl.consistency_box=false", "ssl.consistency_class=false", "ssl.tau_hung=-2.0",
-         "ssl.consistency_reduction=frames", "detector3d.refine=true", "train.steps=7",
-         "ssl.ignore_unmatched_score_3d=0.3", "ssl.ignore_unmatched_score_2d=0.3",
-         "ssl.tau_3d_unmatched=0.6", "ssl.lidar_only_ignore_2d=true"],
+         "detector3d.refine=true", "train.steps=7", "ssl.tau_3d_unmatched=0.6"],
     )  # fmt: skip
     paper = apply_preset(changed, "paper")
     assert paper.ssl.method == "detmatch"
     assert paper.ssl.consistency_box and paper.ssl.consistency_class
-    assert paper.ssl.tau_hung == -1.5 and paper.ssl.consistency_reduction == "pairs"
-    assert not paper.detector3d.refine and not paper.ssl.consistency_nms
-    # The paper's rule: every unmatched detection is background.
-    assert paper.ssl.ignore_unmatched_score_3d == paper.ssl.ignore_unmatched_score_2d == 1.0
-    assert paper.ssl.tau_3d_unmatched == 1.0  # and only matched objects in view are labels
-    assert not paper.ssl.lidar_only_ignore_2d
+    assert paper.ssl.tau_hung == -1.5
+    assert not paper.detector3d.refine
+    # The paper's rule: only matched objects in view are labels (so no LiDAR-only labels whose
+    # projections the 2D student would ignore); every unmatched detection is background.
+    assert paper.ssl.tau_3d_unmatched == 1.0
     assert paper.train.steps == 7  # what the preset does not name stays
     assert set(PRESETS) >= {"paper"}
     with pytest.raises(ConfigError, match="unknown preset 'papper'; known presets: paper"):

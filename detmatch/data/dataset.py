@@ -220,11 +220,6 @@ class Batch:
     def __len__(self) -> int:
         return len(self.samples)
 
-    @property
-    def objects_2d(self) -> int:
-        """The 2D training objects of the batch."""
-        return sum(len(s.gt_2d) for s in self.samples)
-
     def to(self, device: torch.device) -> Batch:
         """The batch with its tensors on device (the samples stay numpy)."""
         return dataclasses.replace(

@@ -101,10 +101,9 @@ def heatmap_focal_loss(
     logits: torch.Tensor,
     target: torch.Tensor,
     negative_mask: torch.Tensor | None = None,
-    normalizer: float | None = None,
 ) -> torch.Tensor:
     """CenterNet's penalty-reduced focal loss (alpha 2, beta 4), summed and divided by the
-    number of peaks (or by normalizer, when given). logits, target: (B, C, H, W); target peaks
+    number of peaks. logits, target: (B, C, H, W); target peaks
     are exactly 1. negative_mask (B, 1, H, W), if given, is 0 where background must not be
     learned (no labels there)."""
     probability = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
@@ -116,8 +115,7 @@ def heatmap_focal_loss(
     negative_loss = (
         torch.log(1 - probability) * torch.pow(probability, 2) * negative_weight * (1 - positive)
     )
-    count = positive.sum() if normalizer is None else positive.new_tensor(float(normalizer))
-    return -(positive_loss.sum() + negative_loss.sum()) / count.clamp(min=1.0)
+    return -(positive_loss.sum() + negative_loss.sum()) / positive.sum().clamp(min=1.0)
 
 
 def sigmoid_focal_loss(

@@ -12,10 +12,8 @@ classes). A detector is an `nn.Module` that implements:
   traceable for ONNX.
 - `build_targets(labels, ...) -> targets`: one frame's typed training targets (a dataclass
   of the detector's own) from `LabeledBoxes`, ground truth or pseudo-labels alike.
-- `loss(outputs, targets, box_regression=True, normalizer=None) -> dict[str, Tensor]`: named,
-  weighted loss terms; without box_regression only the classification terms (the 2D
-  pseudo-label loss); normalizer overrides the object count the classification loss is
-  averaged over.
+- `loss(outputs, targets, box_regression=True) -> dict[str, Tensor]`: named, weighted loss
+  terms; without box_regression only the classification terms (the 2D pseudo-label loss).
 - 3D only: `consistency_candidates(outputs) -> ConsistencyCandidates`, the differentiable
   decode the 2D-teacher -> 3D-student consistency loss pulls on, and the attribute
   `consistency_gradient`, which says where that loss's box gradient goes. A detector with a
@@ -88,11 +86,8 @@ class Detector(nn.Module, abc.ABC):
         outputs: Sequence[torch.Tensor],
         targets: Sequence[Any],
         box_regression: bool = True,
-        normalizer: float | None = None,
     ) -> dict[str, torch.Tensor]:
-        """normalizer: the object count the classification loss is averaged over (None: the
-        targets' own; pseudo-labels may use the labeled batch's, so that few pseudo-labels do
-        not inflate the background's weight)."""
+        """Named, weighted loss terms; without box_regression only the classification ones."""
 
     def detect(self, outputs: Sequence[torch.Tensor]) -> list[Detections]:
         """Per-frame detections above the score threshold, boxes in the input's coordinates."""

@@ -163,16 +163,14 @@ class CenterNet2D(Detector2D):
         outputs: Sequence[torch.Tensor],
         targets: Sequence[CenterNetTargets],
         box_regression: bool = True,
-        normalizer: float | None = None,
     ) -> dict[str, torch.Tensor]:
         """Losses against per-image targets from build_targets. Without box_regression only the
         classification (heatmap) loss is returned: the pseudo-label loss of docs/design.md
-        section 3.
-        normalizer: what the heatmap loss is divided by (None: the targets' peaks)."""
+        section 3."""
         heatmap, size, offset = outputs
         target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)
         area = tensor_like(np.stack([t.labelled_area for t in targets]), heatmap)
-        focal = heatmap_focal_loss(heatmap, target_heatmap, area, normalizer)
+        focal = heatmap_focal_loss(heatmap, target_heatmap, area)
         losses = {"heatmap": self.config.heatmap_weight * focal}
         if box_regression:
             losses.update(regression_losses(size, offset, targets, self.config))

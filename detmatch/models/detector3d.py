@@ -334,13 +334,12 @@ class PointPillars3D(Detector3D):
         outputs: Sequence[torch.Tensor],
         targets: Sequence[CenterPointTargets],
         box_regression: bool = True,
-        normalizer: float | None = None,
     ) -> dict[str, torch.Tensor]:
         """Focal heatmap loss and L1 regression at object centres (averaged over objects)."""
         heatmap, regression = outputs[:2]
         target_heatmap = tensor_like(np.stack([t.heatmap for t in targets]), heatmap)
         area = tensor_like(np.stack([t.labelled_area for t in targets]), heatmap)
-        focal = heatmap_focal_loss(heatmap, target_heatmap, area, normalizer)
+        focal = heatmap_focal_loss(heatmap, target_heatmap, area)
         losses = {"heatmap": self.config.heatmap_weight * focal}
         if box_regression:
             terms = []

@@ -11,18 +11,19 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
+from detmatch.constants import (
+    CONSISTENCY_CLASS_WEIGHT,
+    CONSISTENCY_GIOU_WEIGHT,
+    CONSISTENCY_L1_WEIGHT,
+)
 from detmatch.data.augment import CloudTransform
 from detmatch.data.dataset import Sample
 from detmatch.geometry import (
     CONSISTENCY_MIN_CORNERS,
     CONSISTENCY_MIN_MEAN_DEPTH,
     PROJECTION_MIN_DEPTH,
-    greedy_nms,
-    pairwise_iou_2d,
-    pairwise_iou_bev,
 )
 from detmatch.matching import hungarian_match, matching_cost
 from detmatch.models.common import sigmoid_focal_loss
@@ -96,31 +97,15 @@ def giou_torch(boxes1: torch.Tensor, boxes2: torch.Tensor) -> torch.Tensor:
     return inter / (union + eps) - (hull - union) / (hull + eps)
 
 
-# The authors' candidate filter (docs/design.md section 3): BEV NMS, then 2D NMS on projections.
-CANDIDATE_BEV_NMS = 0.1
-CANDIDATE_IMAGE_NMS = 0.5
-
-
 @dataclass(frozen=True)
 class ConsistencyWeights:
-    """The loss's weights and switches ([ssl] consistency_*); reduction "pairs" or "frames",
-    nms: the authors' candidate filter."""
+    """The loss's weights and switches ([ssl] consistency_*)."""
 
-    class_weight: float = 2.0
-    l1_weight: float = 20.0
-    giou_weight: float = 2.0
+    class_weight: float = CONSISTENCY_CLASS_WEIGHT
+    l1_weight: float = CONSISTENCY_L1_WEIGHT
+    giou_weight: float = CONSISTENCY_GIOU_WEIGHT
     use_class: bool = True
     use_box: bool = True
-    reduction: str = "pairs"
-    nms: bool = False
-
-
-def candidate_nms(boxes: np.ndarray, projected: np.ndarray, scores: np.ndarray) -> np.ndarray:
-    """Rows of a frame's candidates that survive BEV NMS (IoU 0.1) and then 2D NMS (0.5) on
-    their projections, best score first."""
-    rows = greedy_nms(pairwise_iou_bev(boxes, boxes), scores, CANDIDATE_BEV_NMS)
-    iou_2d = pairwise_iou_2d(projected[rows], projected[rows])
-    return rows[greedy_nms(iou_2d, scores[rows], CANDIDATE_IMAGE_NMS)]
 
 
 def consistency_loss(
@@ -154,15 +139,6 @@ def consistency_loss(
             continue
         projected, frame_logits = projected[valid], candidates.logits[b][keep][valid]
         frame_probabilities = candidates.probabilities[b][keep][valid]
-        if weights.nms:
-            rows = candidate_nms(
-                unaugmented[valid].detach().cpu().double().numpy(),
-                projected.detach().cpu().double().numpy(),
-                candidates.scores[b][keep][valid].cpu().double().numpy(),
-            )
-            rows_t = torch.from_numpy(rows).to(projected.device)
-            projected, frame_logits = projected[rows_t], frame_logits[rows_t]
-            frame_probabilities = frame_probabilities[rows_t]
         cost = matching_cost(
             projected.detach().cpu().double().numpy(),
             frame_probabilities.cpu().double().numpy(),
@@ -180,9 +156,7 @@ def consistency_loss(
             onehot = torch.zeros_like(frame_logits[rows_t])
             classes = rows_t.new_tensor(target.classes[cols])
             onehot[torch.arange(len(rows), device=rows_t.device), classes] = 1.0
-            focal = sigmoid_focal_loss(frame_logits[rows_t], onehot)
-            per_pair = focal.mean(dim=1) if weights.reduction == "frames" else focal.sum(dim=1)
-            class_terms.append(per_pair)
+            class_terms.append(sigmoid_focal_loss(frame_logits[rows_t], onehot).sum(dim=1))
         if weights.use_box:
             w, h = image_size
             scale = projected.new_tensor([w, h, w, h])
@@ -195,14 +169,6 @@ def consistency_loss(
         (weights.l1_weight, l1_terms),
         (weights.giou_weight, giou_terms),
     ):
-        if terms:
-            loss = loss + weight * _reduce(terms, weights.reduction)
+        if terms:  # every matched pair of the batch alike; focal summed over classes
+            loss = loss + weight * torch.cat(terms).mean()
     return loss, pairs
-
-
-def _reduce(terms: list[torch.Tensor], reduction: str) -> torch.Tensor:
-    """Per-frame pair terms -> one value: the mean over every pair ("pairs"), or the mean of
-    each frame's mean ("frames"; only frames with matches have terms)."""
-    if reduction == "frames":
-        return torch.stack([t.mean() for t in terms]).mean()
-    return torch.cat(terms).mean()

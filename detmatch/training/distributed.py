@@ -1,6 +1,6 @@
 """torchrun / DistributedDataParallel set-up: gloo on CPU, NCCL on GPU, rank-0-only side effects.
 
-Launch with `torchrun --nproc_per_node N -m detmatch.cli train ...` (one machine) or add
+Launch with `torchrun --nproc_per_node N -m commands.main train ...` (one machine) or add
 torchrun's --nnodes / --node_rank / --rdzv_endpoint flags for several machines.
 """
 

@@ -9,21 +9,18 @@ losses (supervised + pseudo-label + consistency), optimiser steps, EMA update of
 from __future__ import annotations
 
 import copy
-import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from detmatch.checkpoints import load_checkpoint, resolve_checkpoint
 from detmatch.config import ExperimentConfig
-from detmatch.data.dataset import Batch, FrameDataset, Sample
+from detmatch.data.dataset import Batch, FrameDataset
 from detmatch.data.unlabeled import UnlabeledBatch, UnlabeledDataset, collate_unlabeled
 from detmatch.inference import predict_batch
 from detmatch.models.contract import Detector2D, Detector3D, split_outputs
-from detmatch.structures import LabeledBoxes
 from detmatch.training.consistency import ConsistencyWeights, consistency_loss
 from detmatch.training.distributed import DistributedContext
 from detmatch.training.ema import ema_decay, ema_update
@@ -57,14 +54,6 @@ def _total(losses: dict[str, torch.Tensor]) -> torch.Tensor:
     return sum(losses.values())
 
 
-def label_targets(sample: Sample, num_classes: int) -> LabeledBoxes:
-    """A labeled frame's 2D training boxes as consistency targets: original pixels, certain
-    (one-hot) class probabilities (the diagnostics of [ssl] consistency_targets)."""
-    boxes = sample.image_transform.invert(sample.gt_2d.boxes)
-    certain = np.eye(num_classes)[sample.gt_2d.classes]
-    return LabeledBoxes(boxes, sample.gt_2d.classes, certain)
-
-
 def pseudo_label_targets(
     student_2d: Detector2D,
     student_3d: Detector3D,
@@ -72,24 +61,48 @@ def pseudo_label_targets(
     pseudo: list[FramePseudoLabels],
 ) -> tuple[list[Any], list[Any]]:
     """The students' targets from pseudo-labels moved into their frames (3D background is
-    learned everywhere, except around the rule's ignore regions: the fallback labels cover
-    what the camera cannot see)."""
+    learned everywhere: the fallback labels cover what the camera cannot see; 2D background
+    everywhere but the rule's ignore regions)."""
     labels_2d, labels_3d = unlabeled.to_student_frames(
         [p.labels_2d for p in pseudo], [p.labels_3d for p in pseudo]
     )
-    ignore_2d, ignore_3d = unlabeled.to_student_frames(
-        [p.ignore_2d for p in pseudo], [p.ignore_3d for p in pseudo]
-    )
     samples = unlabeled.weak.samples
     targets_2d = [
-        student_2d.build_targets(labels, sample.image_transform.input_size, ignore.boxes)
-        for labels, ignore, sample in zip(labels_2d, ignore_2d, samples, strict=True)
+        student_2d.build_targets(
+            labels,
+            sample.image_transform.input_size,
+            p.ignore_2d.map_boxes(sample.image_transform.apply).boxes,
+        )
+        for labels, p, sample in zip(labels_2d, pseudo, samples, strict=True)
     ]
-    targets_3d = [
-        student_3d.build_targets(labels, ignore=ignore.boxes)
-        for labels, ignore in zip(labels_3d, ignore_3d, strict=True)
-    ]
+    targets_3d = [student_3d.build_targets(labels) for labels in labels_3d]
     return targets_2d, targets_3d
+
+
+def step_record(
+    loss: torch.Tensor,
+    optimised: dict[str, float],
+    losses: dict[str, dict[str, torch.Tensor]],
+    consistency: torch.Tensor,
+    pairs: int,
+    pseudo: list[FramePseudoLabels],
+) -> dict[str, float]:
+    """What a teacher-student step writes to metrics.jsonl: the total loss, the optimiser's
+    figures (gradient norms, learning rates, EMA decay), each loss group summed over its terms,
+    the consistency loss and its matched pairs, the pseudo-labels and 2D ignore regions of the
+    batch, and each modality's supervised + pseudo-label loss."""
+    record: dict[str, float] = {"loss": loss.item(), **optimised}
+    record.update({name: sum(v.item() for v in terms.values()) for name, terms in losses.items()})
+    record.update(
+        consistency=consistency.item(),
+        consistency_pairs=pairs,
+        pseudo_labels_3d=sum(len(p.labels_3d) for p in pseudo),
+        pseudo_labels_2d=sum(len(p.labels_2d) for p in pseudo),
+        ignored_2d=sum(len(p.ignore_2d) for p in pseudo),
+        loss_2d=record["supervised_2d"] + record["pseudo_2d"],
+        loss_3d=record["supervised_3d"] + record["pseudo_3d"],
+    )
+    return record
 
 
 class TeacherStudentTrainer(SupervisedTrainer):
@@ -133,12 +146,10 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
     ) -> None:
         super().__init__(config, run_dir, context)
         ssl, data = config.ssl, config.data
-        diagnostic = ssl.consistency_targets != "teacher"
         frames = FrameDataset(
             data.root, ssl.unlabeled_split, data.classes, data.image_size, self.train_set.grid,
             augment=True, flip_probability=config.train.flip_probability,
-            seed=config.train.seed + 1, with_labels=diagnostic,
-            projected_2d=ssl.consistency_targets == "labels-projected",
+            seed=config.train.seed + 1, with_labels=False,
         )  # fmt: skip
         self.unlabeled_set = UnlabeledDataset(
             frames, ssl.student_rotation, ssl.student_scale, photometric=ssl.photometric
@@ -150,8 +161,6 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             giou_weight=ssl.consistency_giou_weight,
             use_class=ssl.consistency_class,
             use_box=ssl.consistency_box,
-            reduction=ssl.consistency_reduction,
-            nms=ssl.consistency_nms,
         )
 
     @property
@@ -168,24 +177,17 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
     def train_step(self, item: tuple[Batch, UnlabeledBatch]) -> dict[str, float]:
         labeled, unlabeled = item[0].to(self.device), item[1].to(self.device)
         state, ssl, n = self.state, self.config.ssl, len(labeled)
-        student_2d, student_3d = state.model_2d, state.model_3d
+        student_2d, student_3d, weak = state.model_2d, state.model_3d, unlabeled.weak
 
         # 1. Teachers predict on the weak views; detections come back un-augmented.
-        detections = predict_batch(
-            state.teacher_2d, state.teacher_3d, unlabeled.weak, self.autocast_dtype
-        )
+        detections = predict_batch(state.teacher_2d, state.teacher_3d, weak, self.autocast_dtype)
 
         # 2. Pseudo-labels by the method's rule, then moved into the students' frames.
         pseudo = [
             self.rule.frame_labels(d2, d3, s.calib, s.image_transform.original_size)
-            for s, (d2, d3) in zip(unlabeled.weak.samples, detections, strict=True)
+            for s, (d2, d3) in zip(weak.samples, detections, strict=True)
         ]
         pseudo_2d, pseudo_3d = pseudo_label_targets(student_2d, student_3d, unlabeled, pseudo)
-        if ssl.consistency_targets != "teacher":  # diagnostics: the labels as 2D targets
-            pseudo = [
-                dataclasses.replace(p, consistency_2d=label_targets(s, student_3d.num_classes))
-                for p, s in zip(pseudo, unlabeled.weak.samples, strict=True)
-            ]
 
         # 3. Students: one forward each over the labeled frames and the strong unlabeled views.
         student_2d.train()
@@ -198,12 +200,7 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             "supervised_2d": student_2d.loss(labeled_2d, targets_2d),
             "supervised_3d": student_3d.loss(labeled_3d, targets_3d),
             # The 2D pseudo-label loss is classification only (Unbiased Teacher).
-            "pseudo_2d": student_2d.loss(
-                unlabeled_2d,
-                pseudo_2d,
-                box_regression=False,
-                normalizer=labeled.objects_2d if ssl.pseudo_2d_normalizer == "labeled" else None,
-            ),  # fmt: skip
+            "pseudo_2d": student_2d.loss(unlabeled_2d, pseudo_2d, box_regression=False),
             "pseudo_3d": student_3d.loss(unlabeled_3d, pseudo_3d),
         }
         loss = (
@@ -217,27 +214,15 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
         consistency, pairs = torch.zeros(()), 0
         if self.rule.consistency:
             consistency, pairs = consistency_loss(
-                student_3d, unlabeled_3d, unlabeled.weak.samples, unlabeled.student_clouds,
+                student_3d, unlabeled_3d, weak.samples, unlabeled.student_clouds,
                 [p.consistency_2d for p in pseudo], self.consistency, ssl.tau_hung,
             )  # fmt: skip
             loss = loss + consistency
 
         # 5. Optimiser steps; the teachers follow the students.
-        record: dict[str, Any] = {"loss": loss.item()}
-        record.update(self.optimise(loss))
-        record["ema_decay"] = self.update_teachers(state.step - 1)
-
-        record.update(
-            {name: sum(v.item() for v in terms.values()) for name, terms in losses.items()}
-        )
-        record.update(consistency=consistency.item(), consistency_pairs=pairs)
-        record.update(pseudo_labels_3d=sum(len(p.labels_3d) for p in pseudo))
-        record.update(pseudo_labels_2d=sum(len(p.labels_2d) for p in pseudo))
-        record.update(ignored_3d=sum(len(p.ignore_3d) for p in pseudo))
-        record.update(ignored_2d=sum(len(p.ignore_2d) for p in pseudo))
-        record.update(loss_2d=record["supervised_2d"] + record["pseudo_2d"])
-        record.update(loss_3d=record["supervised_3d"] + record["pseudo_3d"])
-        return record
+        optimised = self.optimise(loss)
+        optimised["ema_decay"] = self.update_teachers(state.step - 1)
+        return step_record(loss, optimised, losses, consistency, pairs, pseudo)
 
 
 def trainer_type(method: str) -> type[SupervisedTrainer]:

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.config import Detector3DConfig, load_config
 from detmatch.data.augment import CloudTransform
 from detmatch.data.dataset import FrameDataset, collate
@@ -159,12 +159,12 @@ class TinyPillarNet3D(Detector3D):
             np.asarray(boxes, dtype=np.float32).reshape(-1, BOX_CHANNELS),
         )  # fmt: skip
 
-    def loss(self, outputs, targets, box_regression: bool = True, normalizer=None):
+    def loss(self, outputs, targets, box_regression: bool = True):
         (maps,) = outputs
         heatmap, box = maps[:, : self.num_classes], maps[:, self.num_classes :]
         target = tensor_like(np.stack([t.heatmap for t in targets]), maps)
         area = tensor_like(np.stack([t.area for t in targets]), maps)
-        losses = {"heatmap": heatmap_focal_loss(heatmap, target, area, normalizer)}
+        losses = {"heatmap": heatmap_focal_loss(heatmap, target, area)}
         if box_regression:
             terms = [
                 F.l1_loss(box[b].flatten(1)[:, tensor_like(t.index, maps)].t(),
@@ -207,9 +207,7 @@ def test_a_new_detector_trains_through_both_steps_and_exports(
     pre, ssl, repository = tmp_path / "pre", tmp_path / "dm", tmp_path / "models"
     assert main(["train", "--config", config_file, "--out", str(pre), "--steps", "4"]) == 0
     assert main(["train", "--config", config_file, "--out", str(ssl), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(pre), "--preset", "paper",
-                 "--set", "ssl.ignore_unmatched_score_3d=0.1", "--set",
-                 "ssl.ignore_unmatched_score_2d=0.1"]) == 0  # fmt: skip
+                 "detmatch", "--pretrained", str(pre), "--preset", "paper"]) == 0  # fmt: skip
     records = [json.loads(line) for line in (ssl / "metrics.jsonl").read_text().splitlines()]
     steps = [r for r in records if "consistency" in r]
     assert [r["step"] for r in steps] == [1, 2]

@@ -206,15 +206,18 @@ def test_pillar_encoder_training_path_equals_the_padded_layout(detector_3d):
     )  # fmt: skip
 
 
-def test_the_heatmap_loss_normalizer():
+def test_the_heatmap_loss_is_averaged_over_peaks():
     from detmatch.models.common import heatmap_focal_loss
 
     logits = torch.full((1, 2, 6, 6), -1.0)
     target = torch.zeros(1, 2, 6, 6)
     target[0, 0, 2, 2] = 1.0
-    own = heatmap_focal_loss(logits, target)  # one peak: divided by 1
-    assert heatmap_focal_loss(logits, target, normalizer=8).item() == pytest.approx(own / 8)
-    assert heatmap_focal_loss(logits, torch.zeros_like(target), normalizer=0).item() > 0
+    one_peak = heatmap_focal_loss(logits, target)
+    target[0, 1, 4, 4] = 1.0
+    two_peaks = heatmap_focal_loss(logits, target)
+    # Each peak adds the same positive term; the sum is divided by the number of peaks.
+    assert two_peaks.item() < one_peak.item()
+    assert heatmap_focal_loss(logits, torch.zeros_like(target)).item() > 0  # no peak: over 1
 
 
 def test_ignore_regions_learn_no_background(detector_2d, detector_3d):
@@ -237,7 +240,7 @@ def test_ignore_regions_learn_no_background(detector_2d, detector_3d):
     logits[0, 1, y, x] = 4.0  # a confident pedestrian where the teacher saw one
     target = torch.zeros_like(logits)
     cost = [
-        heatmap_focal_loss(logits, target, torch.from_numpy(t.labelled_area[None]), 1).item()
+        heatmap_focal_loss(logits, target, torch.from_numpy(t.labelled_area[None])).item()
         for t in (free, ignored)
     ]
     assert cost[0] > 1.0 and cost[1] < 1e-3

@@ -6,8 +6,8 @@ import json
 import pytest
 import torch
 
+from commands.main import main
 from detmatch.checkpoints import list_checkpoints, load_checkpoint
-from detmatch.cli import main
 from tests.conftest import REPO
 
 TINY = REPO / "configs" / "tiny.toml"

@@ -1,11 +1,19 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from detmatch.cli import main
-from detmatch.config import load_config
+from commands.main import main
+from detmatch.checkpoints import list_checkpoints, load_checkpoint
+from detmatch.config import (
+    ExperimentConfig,
+    apply_overrides,
+    apply_preset,
+    load_config,
+    teacher_student_config,
+)
 from detmatch.data.augment import CloudTransform, strong_photometric
 from detmatch.data.dataset import ImageTransform, flip_points
 from detmatch.data.kitti import KittiDataset, read_calib
@@ -17,7 +25,9 @@ from detmatch.geometry import (
 )
 from detmatch.structures import Calibration
 from detmatch.training.consistency import giou_torch, project_boxes_torch
+from detmatch.training.distributed import init_distributed
 from detmatch.training.ema import ema_decay, ema_update
+from detmatch.training.semi_supervised import trainer_type
 from tests.conftest import KITTI_SAMPLE, REPO
 
 TINY = REPO / "configs" / "tiny.toml"
@@ -123,97 +133,91 @@ def test_torch_projection_matches_numpy(kitti_sample):
     assert giou_torch(a, b).tolist() == pytest.approx([2 / 6, -4 / 12], abs=1e-6)
 
 
-def test_short_detmatch_run_moves_students_and_matches(synth_root, tmp_path):
-    """Pre-train the tiny detectors until they see the frames' cars, then run DetMatch with the
-    same frames unlabeled: the teachers agree, pseudo-labels are matched, students move."""
-    pretrain = tmp_path / "pretrain.toml"
-    pretrain.write_text(
-        TINY.read_text()
-        .replace("[train]\nsteps = 6", "[train]\nsteps = 120")
-        .replace("eval_every = 6", "eval_every = 1000")
-        .replace("checkpoint_every = 3", "checkpoint_every = 1000")
-        .replace("[train]\n", "[train]\nlr_2d = 0.02\nlr_3d = 0.004\nflip_probability = 0.0\n")
-        .replace('unlabeled_split = "val"', 'unlabeled_split = "train"')
-    )
-    args = ["train", "--config", str(pretrain), "--data", str(synth_root)]
-    assert main([*args, "--out", str(tmp_path / "pre")]) == 0
-    # The paper's preset: matching and the consistency loss (off by default).
-    assert main([*args, "--out", str(tmp_path / "ssl"), "--steps", "4", "--method", "detmatch",
-                 "--pretrained", str(tmp_path / "pre"), "--preset", "paper"]) == 0  # fmt: skip
-    records = [
-        json.loads(line) for line in (tmp_path / "ssl" / "metrics.jsonl").read_text().splitlines()
-    ]
-    steps = [r for r in records if "pseudo_labels_3d" in r]
-    assert len(steps) == 4
-    assert (
-        sum(r["pseudo_labels_3d"] for r in steps) > 0
-        and sum(r["pseudo_labels_2d"] for r in steps) > 0
-    )
-    assert sum(r["consistency_pairs"] for r in steps) > 0
-    from detmatch.checkpoints import list_checkpoints, load_checkpoint
+# Pre-training long enough for the tiny detectors to see the frames' cars, then DetMatch with
+# the same frames unlabeled, so that the two teachers agree on some objects.
+SHORT_RUNS = (
+    "train.steps=120", "train.eval_every=1000", "train.checkpoint_every=1000",
+    "train.lr_2d=0.02", "train.lr_3d=0.004", "train.flip_probability=0.0",
+    "ssl.unlabeled_split=train",
+)  # fmt: skip
 
-    before = load_checkpoint(list_checkpoints(tmp_path / "pre")[-1])
-    after = load_checkpoint(list_checkpoints(tmp_path / "ssl")[-1])
+
+def train(config: ExperimentConfig, out: Path) -> list[dict]:
+    """Train a run as `detmatch train` does; its metrics.jsonl step records."""
+    trainer_type(config.ssl.method)(config, out, init_distributed("cpu")).run()
+    lines = (out / "metrics.jsonl").read_text().splitlines()
+    return [record for record in map(json.loads, lines) if "loss" in record]
+
+
+@pytest.fixture(scope="module")
+def detmatch_run(synth_root, tmp_path_factory):
+    """run(steps, *overrides, preset=None) -> (step records, run directory) of a DetMatch run
+    from one pre-training; each distinct run trains once per module."""
+    base = apply_overrides(load_config(TINY), SHORT_RUNS).replace("data", root=str(synth_root))
+    pretrained = tmp_path_factory.mktemp("pretrained")
+    train(base, pretrained)
+    runs: dict[tuple, tuple[list[dict], Path]] = {}
+
+    def run(steps: int, *overrides: str, preset: str | None = None):
+        key = (steps, overrides, preset)
+        if key not in runs:
+            config = apply_overrides(base, overrides)
+            config = apply_preset(config, preset) if preset else config
+            config = config.replace(
+                "ssl", method="detmatch", pretrained=str(pretrained), steps=steps
+            )
+            out = tmp_path_factory.mktemp("detmatch")
+            runs[key] = train(teacher_student_config(config), out), out
+        return runs[key]
+
+    run.pretrained = pretrained
+    return run
+
+
+def test_the_paper_preset_matches_pulls_and_moves_the_students(detmatch_run):
+    """The paper's method: matched pseudo-labels in both modalities and the consistency loss;
+    the students move, and the output teachers (their EMA) move less."""
+    steps, out = detmatch_run(4, preset="paper")
+    assert len(steps) == 4
+    assert sum(r["pseudo_labels_3d"] for r in steps) > 0
+    assert sum(r["pseudo_labels_2d"] for r in steps) > 0
+    assert sum(r["consistency_pairs"] for r in steps) > 0
+    before = load_checkpoint(list_checkpoints(detmatch_run.pretrained)[-1])
+    after = load_checkpoint(list_checkpoints(out)[-1])
     for key in ("2d", "3d"):
-        moved = [
-            not torch.equal(before[f"model_{key}"][k], after[f"student_{key}"][k])
-            for k in before[f"model_{key}"]
-        ]
-        assert any(moved)
-        # The output (teacher) moved less than the student: an EMA of it.
-        name = next(k for k in before[f"model_{key}"] if k.endswith("weight"))
-        student_shift = (after[f"student_{key}"][name] - before[f"model_{key}"][name]).abs().sum()
-        teacher_shift = (after[f"model_{key}"][name] - before[f"model_{key}"][name]).abs().sum()
+        pretrained, student = before[f"model_{key}"], after[f"student_{key}"]
+        assert any(not torch.equal(pretrained[k], student[k]) for k in pretrained)
+        name = next(k for k in pretrained if k.endswith("weight"))
+        student_shift = (student[name] - pretrained[name]).abs().sum()
+        teacher_shift = (after[f"model_{key}"][name] - pretrained[name]).abs().sum()
         assert 0 < teacher_shift < student_shift
 
-    # Diagnostics: the frames' own labels as the consistency targets (the unlabeled split is
-    # labeled here): every confident projected candidate near a label is pulled.
-    assert main([*args, "--out", str(tmp_path / "diagnostic"), "--steps", "2", "--method",
-                 "detmatch", "--pretrained", str(tmp_path / "pre"), "--preset", "paper", "--set",
-                 "ssl.consistency_targets=labels-projected"]) == 0  # fmt: skip
-    lines = (tmp_path / "diagnostic" / "metrics.jsonl").read_text().splitlines()
-    pairs = [json.loads(line)["consistency_pairs"] for line in lines if "consistency" in line]
-    assert len(pairs) == 2 and sum(pairs) >= sum(r["consistency_pairs"] for r in steps[:2])
 
-    def two_steps(name: str, *overrides: str) -> list[dict]:
-        """The step records of a 2-step DetMatch run from the pre-training with --set overrides."""
-        sets = [arg for override in overrides for arg in ("--set", override)]
-        assert main([*args, "--out", str(tmp_path / name), "--steps", "2", "--method",
-                     "detmatch", "--pretrained", str(tmp_path / "pre"), *sets]) == 0  # fmt: skip
-        lines = (tmp_path / name / "metrics.jsonl").read_text().splitlines()
-        return [json.loads(line) for line in lines if "pseudo_labels_3d" in line]
-
-    # The defaults (what won on dev): the matching plus LiDAR-only labels above 0.6 whose
-    # projections the 2D student does not learn as background; no consistency loss.
-    default = two_steps("default")
+def test_the_defaults_learn_pseudo_labels_without_a_consistency_loss(detmatch_run):
+    """What won on dev: the matching plus LiDAR-only labels, no consistency loss."""
+    default, _ = detmatch_run(2)
     assert len(default) == 2 and sum(r["pseudo_labels_3d"] for r in default) > 0
     assert all(r["consistency_pairs"] == 0 and r["consistency"] == 0 for r in default)
-    assert all(r["ignored_3d"] == 0 for r in default)
 
-    # The paper's rule in view: only matched objects are labels; nothing is ignored.
-    matched = two_steps("matched-only", "ssl.tau_3d_unmatched=1.0")
+
+def test_the_papers_rule_in_view_labels_only_matched_objects(detmatch_run):
+    """tau_3d_unmatched 1.0: no LiDAR-only labels beside the defaults' same 2D labels, so no 2D
+    ignore regions."""
+    default, _ = detmatch_run(2)
+    matched, _ = detmatch_run(2, "ssl.tau_3d_unmatched=1.0")
     assert matched[0]["pseudo_labels_2d"] == default[0]["pseudo_labels_2d"]  # the same teachers
     assert matched[0]["pseudo_labels_3d"] <= default[0]["pseudo_labels_3d"]
-    assert all(r["ignored_3d"] == r["ignored_2d"] == 0 for r in matched)
+    assert all(r["ignored_2d"] == 0 for r in matched)
 
-    # Unmatched confident detections as ignore regions: the same labels, fewer negatives.
-    ignore = two_steps(
-        "ignore", "ssl.tau_3d_unmatched=1.0", "ssl.ignore_unmatched_score_3d=0.1",
-        "ssl.ignore_unmatched_score_2d=0.1",
-    )  # fmt: skip
-    assert ignore[0]["pseudo_labels_3d"] == matched[0]["pseudo_labels_3d"]
-    assert sum(r["ignored_3d"] + r["ignored_2d"] for r in ignore) > 0
 
-    # LiDAR-only labels (a low score, so that the tiny teacher has some): their projections
-    # are 2D ignore regions with the default lidar_only_ignore_2d, 2D background without it.
-    protected = two_steps("protected", "ssl.tau_3d_unmatched=0.05")
-    exposed = two_steps("exposed", "ssl.tau_3d_unmatched=0.05", "ssl.lidar_only_ignore_2d=false")
-    assert protected[0]["pseudo_labels_2d"] == matched[0]["pseudo_labels_2d"]
-    assert protected[0]["pseudo_labels_3d"] >= matched[0]["pseudo_labels_3d"]
-    assert exposed[0]["pseudo_labels_3d"] == protected[0]["pseudo_labels_3d"]
-    assert sum(r["ignored_2d"] for r in protected) > 0
-    assert all(r["ignored_3d"] == 0 for r in protected)
-    assert all(r["ignored_3d"] == r["ignored_2d"] == 0 for r in exposed)
+def test_lidar_only_labels_are_ignored_by_the_2d_student(detmatch_run):
+    """LiDAR-only labels (a low score, so that the tiny teacher has some) add 3D labels, and
+    their image projections are 2D ignore regions; the 2D labels stay the matched pairs."""
+    matched, _ = detmatch_run(2, "ssl.tau_3d_unmatched=1.0")
+    lidar_only, _ = detmatch_run(2, "ssl.tau_3d_unmatched=0.05")
+    assert lidar_only[0]["pseudo_labels_2d"] == matched[0]["pseudo_labels_2d"]
+    assert lidar_only[0]["pseudo_labels_3d"] >= matched[0]["pseudo_labels_3d"]
+    assert sum(r["ignored_2d"] for r in lidar_only) > 0
 
 
 def test_semi_supervised_methods_need_pretrained_weights(synth_root, tmp_path, capsys):
@@ -246,20 +250,3 @@ def test_confidence_run(synth_root, tmp_path):
     assert train["steps"] == ssl["steps"] == 2  # --steps: the stage's length
     assert train["schedule_2d"] == train["schedule_3d"] == "constant"
     assert (pretraining["schedule_2d"], pretraining["schedule_3d"]) == ("step", "onecycle")
-
-
-def test_consistency_reductions_and_candidate_nms():
-    from detmatch.training.consistency import _reduce, candidate_nms
-
-    one, three = torch.tensor([1.0]), torch.tensor([2.0, 2.0, 5.0])
-    assert _reduce([one, three], "pairs").item() == pytest.approx(10.0 / 4)
-    assert _reduce([one, three], "frames").item() == pytest.approx((1.0 + 3.0) / 2)
-    car = [15.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.2]
-    shifted = [15.3, 2.1, -0.9, 3.9, 1.6, 1.5, 0.2]  # a duplicate peak of the same car
-    apart = [15.0, -3.0, -0.9, 3.9, 1.6, 1.5, 0.2]  # beside it in 3D, overlapping in the image
-    boxes = np.array([car, shifted, apart])
-    projected = np.array([[100, 100, 200, 180], [102, 101, 203, 181], [150, 100, 250, 180]])
-    rows = candidate_nms(boxes, projected.astype(float), np.array([0.6, 0.9, 0.5]))
-    assert rows.tolist() == [1, 2]  # the best of the duplicates; the third survives both NMS
-    projected[2] = [101, 100, 201, 180]  # now nearly the first's projection: 2D NMS drops it
-    assert candidate_nms(boxes, projected.astype(float), np.array([0.6, 0.9, 0.5])).tolist() == [1]

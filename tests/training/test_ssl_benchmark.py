@@ -6,6 +6,7 @@ import shutil
 from benchmarks.ssl_benchmark import splits, ssl_config
 from detmatch.config import load_config
 from detmatch.data.kitti import read_image_set
+from detmatch.matching_policy import MatchingPolicy
 from tests.conftest import REPO
 
 TINY = REPO / "configs" / "tiny.toml"
@@ -97,18 +98,15 @@ def test_the_pseudo_label_report_follows_the_configs_detmatch_rule():
 
 
 def test_every_benchmark_method_is_a_valid_config():
-    """A method whose overrides contradict each other (e.g. 2D ignore regions of LiDAR-only
-    labels with those labels off) would only fail hours into a benchmark run."""
+    """A method whose overrides name a deleted option or contradict each other would only fail
+    hours into a benchmark run."""
     from benchmarks.ssl_benchmark import METHODS
     from detmatch.config import apply_overrides
 
     base = load_config(TINY)
     for method, overrides in METHODS.items():
         assert apply_overrides(base, overrides).ssl.method != "labeled-only", method
-    protected = apply_overrides(base, METHODS["detmatch-lidar-confident-2d-ignore"]).ssl
-    assert protected.lidar_only_ignore_2d and protected.unmatched_3d_threshold == 0.6
-    assert protected == apply_overrides(base, METHODS["detmatch"]).ssl  # the defaults now
+    detmatch = apply_overrides(base, METHODS["detmatch"]).ssl
+    assert MatchingPolicy.from_config(detmatch).tau_3d_unmatched == 0.6
     matched_only = apply_overrides(base, METHODS["detmatch-matched-only"]).ssl
-    assert matched_only.unmatched_3d_threshold is None and not matched_only.lidar_only_ignore_2d
-    exposed = apply_overrides(base, METHODS["detmatch-lidar-confident"]).ssl
-    assert exposed.unmatched_3d_threshold == 0.6 and not exposed.lidar_only_ignore_2d
+    assert MatchingPolicy.from_config(matched_only).tau_3d_unmatched is None

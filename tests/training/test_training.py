@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from commands.main import main
 from detmatch.checkpoints import list_checkpoints, load_checkpoint
-from detmatch.cli import main
 from detmatch.config import ConfigError, load_config
 from detmatch.data.kitti import KittiDataset, read_objects
 from detmatch.geometry import pairwise_iou_2d
@@ -134,7 +134,7 @@ def test_killed_run_resumes_to_the_same_weights(synth_root, tmp_path):
     base = [
         sys.executable,
         "-m",
-        "detmatch.cli",
+        "commands.main",
         "train",
         "--config",
         str(config),
