@@ -34,20 +34,10 @@ from benchmarks.service_common import (
     sample_requests,
     serve,
 )
+from serving.health_check import wait_until_serving
+from serving.testing import self_signed_certificate
 
 TOKEN = "bench-token-0123456789"
-
-
-def certificate(work: Path) -> tuple[Path, Path]:
-    cert, key = work / "cert.pem", work / "key.pem"
-    if not cert.is_file():
-        subprocess.run(
-            ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
-             "-keyout", str(key), "-out", str(cert), "-subj", "/CN=localhost",
-             "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1"],
-            check=True, capture_output=True,
-        )  # fmt: skip
-    return cert, key
 
 
 def channel(target: str, cert: Path | None) -> grpc.Channel:
@@ -135,7 +125,7 @@ def main() -> None:
     args = parser.parse_args()
     work = Path(args.work or tempfile.mkdtemp(prefix="service_auth_"))
     repository = prepare_repository(work, args.config)
-    cert, key = certificate(work)
+    cert, key = self_signed_certificate(work)
     env = {k: v for k, v in os.environ.items() if k != "DETMATCH_TOKEN"}
     env.update(OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
     refused = subprocess.run(
@@ -153,7 +143,11 @@ def main() -> None:
                 target = server.target
                 if tls:
                     time.sleep(1.0)  # no plaintext health probe: let the model load
-                    _wait_tls(target, cert)
+                    status = wait_until_serving(target, wait_s=120, poll_s=0.05,
+                                                root_certificates=cert.read_bytes(),
+                                                server_name="localhost")  # fmt: skip
+                    if status != "SERVING":
+                        raise TimeoutError(f"{target} is {status}, not SERVING, after 120 s")
                 figures = load(target, cert if tls else None, token, args.clients, args.seconds)
                 checks = refusals(target, cert if tls else None, token)
                 starting = json.loads(server.log().splitlines()[0])
@@ -177,22 +171,6 @@ def main() -> None:
     argv = ["--clients", str(args.clients), "--seconds", str(args.seconds), "--config",
             args.config]  # fmt: skip
     print(f"\nrerun: {rerun('service_auth', argv)}")
-
-
-def _wait_tls(target: str, cert: Path, timeout_s: float = 120.0) -> None:
-    from grpc_health.v1 import health_pb2, health_pb2_grpc
-
-    deadline = time.monotonic() + timeout_s
-    with channel(target, cert) as ch:
-        stub = health_pb2_grpc.HealthStub(ch)
-        while time.monotonic() < deadline:
-            try:
-                if stub.Check(health_pb2.HealthCheckRequest(), timeout=5).status == 1:
-                    return
-            except grpc.RpcError:
-                pass
-            time.sleep(0.05)
-    raise TimeoutError(f"{target} did not become SERVING")
 
 
 if __name__ == "__main__":

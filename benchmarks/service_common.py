@@ -22,15 +22,16 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import grpc
 import numpy as np
+
+from serving.health_check import wait_until_serving
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI_SAMPLE = REPO / "tests" / "data" / "kitti"
 SAMPLE_IDS = ("000000", "000001", "000002")
 TORCH_FREE_SERVE = (
     "import sys; sys.modules['torch'] = None; "
-    "from detmatch.cli import main; sys.exit(main(['serve'] + sys.argv[1:]))"
+    "from commands.main import main; sys.exit(main(['serve'] + sys.argv[1:]))"
 )
 
 
@@ -113,7 +114,9 @@ def serve(
             raise RuntimeError(f"server did not start: {line!r}\n{log_path.read_text()[-3000:]}")
         target = line.split()[-1]
         if "--tls-cert" not in args:
-            wait_until_serving(target)
+            status = wait_until_serving(target, wait_s=120, poll_s=0.05)
+            if status != "SERVING":
+                raise TimeoutError(f"{target} is {status}, not SERVING, after 120 s")
         yield ServerProcess(process, target, log_path)
     finally:
         if process.poll() is None:
@@ -126,29 +129,15 @@ def serve(
         process.stdout.close()
 
 
-def wait_until_serving(target: str, timeout_s: float = 120.0) -> None:
-    from grpc_health.v1 import health_pb2, health_pb2_grpc
-
-    deadline = time.monotonic() + timeout_s
-    with grpc.insecure_channel(target) as channel:
-        stub = health_pb2_grpc.HealthStub(channel)
-        while time.monotonic() < deadline:
-            try:
-                status = stub.Check(health_pb2.HealthCheckRequest(), timeout=5).status
-            except grpc.RpcError:
-                status = None
-            if status == health_pb2.HealthCheckResponse.SERVING:
-                return
-            time.sleep(0.05)
-    raise TimeoutError(f"{target} did not become SERVING in {timeout_s} s")
-
-
 def sample_requests(store: bool = True, prefix: str = "") -> list:
     """One LabelFrameRequest per KITTI sample frame (frame ids prefix + the KITTI id)."""
-    from serving.client import LabelingClient
+    from serving.client import kitti_frame
+    from serving.messages import request_message
+    from serving.request import LabelOptions
 
+    options = LabelOptions(store=store)
     return [
-        LabelingClient.kitti_request(KITTI_SAMPLE, i, send_as=f"{prefix}{i}", store=store)
+        request_message(kitti_frame(KITTI_SAMPLE, i, send_as=f"{prefix}{i}", options=options))
         for i in SAMPLE_IDS
     ]
 

@@ -2,13 +2,21 @@
 
 python examples/label_frame.py --target 127.0.0.1:50051 --data data/synth --frame 000000
 DETMATCH_TOKEN=... python examples/label_frame.py --target host:443 --ca-cert ca.pem ...
+
+The bearer token comes from $DETMATCH_TOKEN (the server's own variable); none is sent when it is
+unset, for a server started with --no-auth. A refused call, an unreachable server or a missing
+frame ends in one line on stderr and exit status 1 (the server's status code and its message),
+not a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
+
+import grpc
 
 from serving.client import LabelingClient, pb2
 
@@ -24,12 +32,27 @@ def main() -> int:
     )
     parser.add_argument("--no-store", action="store_true", help="label without storing")
     args = parser.parse_args()
-    root_certificates = Path(args.ca_cert).read_bytes() if args.ca_cert else None
     token = os.environ.get("DETMATCH_TOKEN") or None
-    with LabelingClient(args.target, token=token, root_certificates=root_certificates) as client:
-        response = client.label_kitti_frame(
-            Path(args.data), args.frame, store=not args.no_store, namespace=args.namespace
-        )
+    try:
+        root_certificates = Path(args.ca_cert).read_bytes() if args.ca_cert else None
+        with LabelingClient(
+            args.target, token=token, root_certificates=root_certificates
+        ) as client:
+            response = client.label_kitti_frame(
+                Path(args.data), args.frame, store=not args.no_store, namespace=args.namespace
+            )
+    except grpc.RpcError as error:
+        hint = ""
+        if error.code() == grpc.StatusCode.UNAUTHENTICATED and token is None:
+            hint = " (set $DETMATCH_TOKEN to the server's token)"
+        print(f"label_frame: {error.code().name}: {error.details()}{hint}", file=sys.stderr)
+        return 1
+    except FileNotFoundError as error:  # a frame or certificate that is not there
+        print(f"label_frame: error: no such file: {error.filename}", file=sys.stderr)
+        return 1
+    except (OSError, ValueError) as error:  # an unreadable file, a bad frame id
+        print(f"label_frame: error: {error}", file=sys.stderr)
+        return 1
     outcome = pb2.StoreOutcome.Name(response.store_outcome).removeprefix("STORE_OUTCOME_")
     print(
         f"frame {response.namespace}/{response.frame_id}: {len(response.labels)} labels from "

@@ -1,6 +1,6 @@
 """The labeling service's domain object, testable without gRPC.
 
-`LabelingService.label_frame` decodes a wire-format frame (serving.decode), labels it with the
+`LabelingService.label_frame` decodes a `FrameRequest` (serving.decode), labels it with the
 currently served model and stores it; `ModelSlot` holds that model and swaps it atomically. A
 request takes the slot's labeler once, at its start, so a swap never changes the model under a
 request in flight, and every answer names the version that produced it.
@@ -12,7 +12,6 @@ import io
 import logging
 import threading
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,8 +26,9 @@ from serving.decode import (
     decode_namespace,
     decode_points,
 )
-from serving.errors import InvalidInput, ModelUnavailable, StoreError
+from serving.errors import InvalidInput, ModelUnavailable
 from serving.labeler import FrameLabels, Labeler
+from serving.request import FrameRequest
 from serving.store import LabelStore, PutResult
 
 log = logging.getLogger("detmatch.serving")
@@ -64,16 +64,6 @@ class ModelSlot:
 
 
 @dataclass(frozen=True)
-class LabelOptions:
-    """Per-request overrides (None: the manifest's value) and whether to store the frame."""
-
-    score_threshold_2d: float | None = None
-    score_threshold_3d: float | None = None
-    tau_hung: float | None = None
-    store: bool = True
-
-
-@dataclass(frozen=True)
 class DecodedFrame:
     """A request's fields, decoded and checked. image, points_bytes: the bytes as sent (PNG or
     JPEG; little-endian float32 N x 4, what the store writes without another copy)."""
@@ -85,11 +75,25 @@ class DecodedFrame:
     image: bytes
     points: np.ndarray
     calib: Calibration
-    points_bytes: bytes = b""
+    points_bytes: bytes
 
     def png(self) -> bytes:
         """The image as PNG bytes (what the store keeps): as sent, or re-encoded losslessly."""
         return self.image if self.kind == "png" else _png(self.pixels)
+
+
+@dataclass(frozen=True)
+class LabeledFrame:
+    """A request's first half done: its frame decoded and labeled. stores: whether
+    `store_labels` will write it; received_at, labeled_at: time.perf_counter() readings;
+    decode_s: seconds spent decoding."""
+
+    frame: DecodedFrame
+    labels: FrameLabels
+    stores: bool
+    received_at: float
+    decode_s: float
+    labeled_at: float
 
 
 @dataclass(frozen=True)
@@ -104,9 +108,9 @@ class LabelResult:
 
 
 class LabelingService:
-    """Decode, label, store: each step callable on its own (the gRPC server runs decoding and
-    labeling on its inference threads and storing on its I/O threads), or all three at once
-    with `label_frame`."""
+    """Decode, label, store. A request runs in two halves, one per kind of work, so a server
+    can give each its own threads: `label` (decode and label: CPU) and `store_labels` (file
+    writes and fsyncs: the disk); `label_frame` runs both in turn."""
 
     def __init__(
         self,
@@ -118,30 +122,23 @@ class LabelingService:
         self.store = store
         self.max_image_pixels = max_image_pixels
 
-    def decode(
-        self,
-        frame_id: str,
-        image: bytes,
-        points: bytes,
-        p2: Sequence[float],
-        r0_rect: Sequence[float],
-        tr_velo_to_cam: Sequence[float],
-        namespace: str | None = None,
-    ) -> DecodedFrame:
-        """InvalidInput naming the field for anything malformed."""
-        namespace = decode_namespace(namespace)
-        frame_id = decode_frame_id(frame_id)
-        pixels, kind = decode_image(image, self.max_image_pixels)
-        cloud = decode_points(points)
-        calib = decode_calibration(p2, r0_rect, tr_velo_to_cam)
-        return DecodedFrame(namespace, frame_id, pixels, kind, image, cloud, calib, points)
+    def label_frame(self, request: FrameRequest) -> LabelResult:
+        """Decode, label and (unless options.store is False or there is no store) store one
+        frame. Raises InvalidInput for bad input, ModelUnavailable without a model."""
+        return self.store_labels(self.label(request))
 
-    def label(self, frame: DecodedFrame, options: LabelOptions = LabelOptions()) -> FrameLabels:
-        """Label with the served model, taken once (a swap never changes it mid-request).
-        ModelUnavailable without a model; InvalidInput for bad options."""
+    def label(self, request: FrameRequest, received_at: float | None = None) -> LabeledFrame:
+        """Decode and label with the served model, taken once (a swap never changes it
+        mid-request). received_at: when the request arrived (time.perf_counter(); None: now),
+        the start of its total time. InvalidInput for a malformed field or option,
+        ModelUnavailable without a model."""
+        start = time.perf_counter()
+        frame = self.decode(request)
+        decoded = time.perf_counter()
         labeler = self.slot.labeler
+        options = request.options
         try:
-            return labeler.label(
+            labels = labeler.label(
                 frame.pixels,
                 frame.points,
                 frame.calib,
@@ -151,44 +148,44 @@ class LabelingService:
             )
         except ValueError as error:
             raise InvalidInput(f"options.{error}") from None
-
-    def store_labels(self, frame: DecodedFrame, result: FrameLabels) -> PutResult:
-        if self.store is None:
-            raise StoreError("this server has no label store")
-        points = frame.points_bytes or frame.points
-        return self.store.put(
-            frame.frame_id, frame.png(), points, frame.calib, result, frame.namespace
+        return LabeledFrame(
+            frame=frame,
+            labels=labels,
+            stores=options.store and self.store is not None,
+            received_at=start if received_at is None else received_at,
+            decode_s=decoded - start,
+            labeled_at=time.perf_counter(),
         )
 
-    def label_frame(
-        self,
-        frame_id: str,
-        image: bytes,
-        points: bytes,
-        p2: Sequence[float],
-        r0_rect: Sequence[float],
-        tr_velo_to_cam: Sequence[float],
-        options: LabelOptions = LabelOptions(),
-        namespace: str | None = None,
-    ) -> LabelResult:
-        """Decode, label and (unless options.store is False or there is no store) store one
-        frame. Raises InvalidInput for bad input, ModelUnavailable without a model."""
-        start = time.perf_counter()
-        frame = self.decode(frame_id, image, points, p2, r0_rect, tr_velo_to_cam, namespace)
-        decoded = time.perf_counter()
-        result = self.label(frame, options)
-        labeled = time.perf_counter()
+    def decode(self, request: FrameRequest) -> DecodedFrame:
+        """InvalidInput naming the field for anything malformed."""
+        namespace = decode_namespace(request.namespace)
+        frame_id = decode_frame_id(request.frame_id)
+        pixels, kind = decode_image(request.image, self.max_image_pixels)
+        cloud = decode_points(request.points)
+        calib = decode_calibration(request.p2, request.r0_rect, request.tr_velo_to_cam)
+        return DecodedFrame(
+            namespace, frame_id, pixels, kind, request.image, cloud, calib, request.points
+        )
+
+    def store_labels(self, labeled: LabeledFrame) -> LabelResult:
+        """Store the frame if its request asked to (`labeled.stores`: without it nothing here
+        touches the disk) and time the request. StoreError when the store cannot record it."""
+        frame, labels = labeled.frame, labeled.labels
         stored = None
-        if options.store and self.store is not None:
-            stored = self.store_labels(frame, result)
+        if labeled.stores:
+            stored = self.store.put(
+                frame.frame_id, frame.png(), frame.points_bytes, frame.calib, labels,
+                frame.namespace,
+            )  # fmt: skip
         end = time.perf_counter()
         timings = {
-            **result.timings,
-            "decode": decoded - start,
-            "store": end - labeled,
-            "total": end - start,
+            **labels.timings,
+            "decode": labeled.decode_s,
+            "store": end - labeled.labeled_at,
+            "total": end - labeled.received_at,
         }
-        return LabelResult(frame.namespace, frame.frame_id, result, stored, timings)
+        return LabelResult(frame.namespace, frame.frame_id, labels, stored, timings)
 
     def model_info(self) -> dict[str, Any]:
         labeler = self.slot.labeler

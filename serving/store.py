@@ -75,6 +75,7 @@ __all__ = [
     "check_integrity",
     "export_store",
     "list_frames",
+    "validate_namespace",
 ]
 
 log = logging.getLogger("detmatch.serving")
@@ -83,6 +84,16 @@ DEFAULT_NAMESPACE = LEGACY_NAMESPACE
 SELECT_FRAME = f"SELECT {', '.join(COLUMNS)} FROM frames WHERE namespace = ? AND frame_id = ?"
 IO_THREADS = 16
 UPSERT = f"INSERT OR REPLACE INTO frames VALUES ({', '.join('?' * len(COLUMNS))})"
+
+
+def validate_namespace(namespace: str) -> str:
+    """Namespaces are directory names: the frame id's rules (1-64 letters, digits, '_', '-')."""
+    try:
+        return validate_frame_id(namespace)
+    except ValueError:
+        raise ValueError(
+            f"invalid namespace {namespace!r}: use 1-64 letters, digits, '_' or '-'"
+        ) from None
 
 
 class StoreOutcome(str, Enum):
@@ -175,7 +186,7 @@ class LabelStore:
         )  # fmt: skip
 
     def get(self, frame_id: str, namespace: str = DEFAULT_NAMESPACE) -> StoredFrame | None:
-        key = (validate_frame_id(namespace), validate_frame_id(frame_id))
+        key = (validate_namespace(namespace), validate_frame_id(frame_id))
         with self._db_lock:
             row = self._db.execute(SELECT_FRAME, key).fetchone()
         return None if row is None else record_of(row, self.shard)
@@ -192,7 +203,7 @@ class LabelStore:
         """Store a frame and its labels under (namespace, frame_id) and wait until that is
         durable; the outcome follows the re-labeling policy. image_png: the image as PNG;
         points: (N, 4) float32, or their little-endian float32 bytes."""
-        namespace, frame_id = validate_frame_id(namespace), validate_frame_id(frame_id)
+        namespace, frame_id = validate_namespace(namespace), validate_frame_id(frame_id)
         if self._closed:
             raise StoreError("the label store is closed")
         contents = _contents(namespace, frame_id, image_png, points, calib, result)

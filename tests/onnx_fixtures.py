@@ -30,7 +30,7 @@ def one_torch_thread() -> Iterator[None]:
 def _trained_checkpoint(base: Path, synth_root: Path) -> Path:
     run = base / "onnx_shared" / "run"
     if not (run / "checkpoints").is_dir():
-        from detmatch.cli import main
+        from commands.main import main
 
         with one_torch_thread():
             assert main(["train", "--config", str(REPO / "configs" / "tiny.toml"),
@@ -72,3 +72,13 @@ def exported_repository(tmp_path_factory, synth_root) -> Path:
 def _one_torch_thread() -> Iterator[None]:
     with one_torch_thread():
         yield
+
+
+@pytest.fixture(scope="session")
+def served_labeler(exported_repository):
+    """The exported version 000001 as the service loads it, warmed up."""
+    from serving.labeler import Labeler
+
+    labeler = Labeler.from_repository(exported_repository)
+    labeler.warm_up()
+    return labeler

@@ -7,26 +7,27 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import grpc
 import pytest
 
-from serving.labeler import Labeler
+from serving.config import ServerConfig
+from serving.health_check import wait_until_serving
 from serving.repository import promote
-from serving.server import BackgroundServer, ServerConfig
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore
+from serving.testing import BackgroundServer
 from tests.conftest import REPO
 from tests.onnx_fixtures import (  # noqa: F401
     _one_torch_thread,
     exported_repository,
+    served_labeler,
     trained_checkpoint,
 )
 
@@ -41,13 +42,6 @@ class Running:
     @property
     def target(self) -> str:
         return f"127.0.0.1:{self.port}"
-
-
-@pytest.fixture(scope="session")
-def served_labeler(exported_repository) -> Labeler:  # noqa: F811
-    labeler = Labeler.from_repository(exported_repository)
-    labeler.warm_up()
-    return labeler
 
 
 @contextlib.contextmanager
@@ -71,7 +65,7 @@ def running_server(
 
 
 @pytest.fixture
-def server(tmp_path, served_labeler) -> Iterator[Running]:
+def server(tmp_path, served_labeler) -> Iterator[Running]:  # noqa: F811
     slot = ModelSlot()
     slot.swap(served_labeler)
     with running_server(slot, tmp_path / "store") as running:
@@ -98,26 +92,21 @@ def add_version(root: Path, version: str, corrupt: bool = False) -> None:
         model.write_bytes(model.read_bytes()[:100])
 
 
-def wait_until_serving(target: str, timeout_s: float = 60.0) -> None:
-    from grpc_health.v1 import health_pb2, health_pb2_grpc
-
-    deadline = time.monotonic() + timeout_s
-    with grpc.insecure_channel(target) as channel:
-        stub = health_pb2_grpc.HealthStub(channel)
-        while time.monotonic() < deadline:
-            try:
-                status = stub.Check(health_pb2.HealthCheckRequest(), timeout=5).status
-            except grpc.RpcError:
-                status = None
-            if status == health_pb2.HealthCheckResponse.SERVING:
-                return
-            time.sleep(0.05)
-    raise TimeoutError(f"{target} did not become SERVING in {timeout_s} s")
+def prometheus_sample(text: str, name: str, **labels: str) -> float:
+    """The value of one sample of a Prometheus text exposition (0 when absent)."""
+    for line in text.splitlines():
+        if not line.startswith(name + "{") and not line.startswith(name + " "):
+            continue
+        head, value = line.rsplit(" ", 1)
+        found = dict(re.findall(r'(\w+)="([^"]*)"', head))
+        if head.split("{")[0] == name and all(found.get(k) == v for k, v in labels.items()):
+            return float(value)
+    return 0.0
 
 
 TORCH_FREE_SERVE = (
     "import sys; sys.modules['torch'] = None; "
-    "from detmatch.cli import main; sys.exit(main(['serve'] + sys.argv[1:]))"
+    "from commands.main import main; sys.exit(main(['serve'] + sys.argv[1:]))"
 )
 
 
@@ -141,7 +130,9 @@ def serve_process(
             process.kill()
             raise RuntimeError(f"server did not start: {line!r} {process.stderr.read()[-3000:]}")
         target = line.split()[-1]
-        wait_until_serving(target)
+        status = wait_until_serving(target, wait_s=60, poll_s=0.05)
+        if status != "SERVING":
+            raise TimeoutError(f"{target} is {status}, not SERVING, after 60 s")
         yield process, target
     finally:
         if process.poll() is None:

@@ -7,7 +7,7 @@ import subprocess
 import sys
 import threading
 
-from detmatch.cli import main
+from commands.main import main
 from serving.health_check import check_health
 from serving.service import ModelSlot
 from tests.conftest import REPO
@@ -16,7 +16,7 @@ from tests.grpc_service.conftest import running_server
 # `detmatch health` in a process that cannot import torch (the serve image has none).
 TORCH_FREE_HEALTH = (
     "import sys; sys.modules['torch'] = None; "
-    "from detmatch.cli import main; sys.exit(main(['health'] + sys.argv[1:]))"
+    "from commands.main import main; sys.exit(main(['health'] + sys.argv[1:]))"
 )
 
 

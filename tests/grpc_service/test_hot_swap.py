@@ -123,7 +123,7 @@ def test_a_starting_server_falls_back_to_the_newest_promoted_version_that_loads(
 
 
 def test_promote_refuses_a_version_that_fails_verification(tmp_path, exported_repository, capsys):
-    from export.cli import main as export_main
+    from commands.export import main as export_main
 
     repository = copy_repository(exported_repository, tmp_path / "models")
     add_version(repository, "000002")

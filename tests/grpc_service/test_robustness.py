@@ -16,10 +16,13 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 from PIL import Image
 
 from benchmarks.service_stall import IdleConnection, StalledStream
-from serving.client import LabelingClient, pb2, pb2_grpc
-from serving.server import BackgroundServer, ServerConfig, format_address
+from serving.client import LabelingClient, kitti_frame, pb2, pb2_grpc
+from serving.config import ServerConfig
+from serving.messages import request_message
+from serving.server import format_address
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore, list_frames
+from serving.testing import BackgroundServer
 from tests.conftest import KITTI_SAMPLE
 from tests.grpc_service.conftest import running_server, serve_process
 
@@ -76,7 +79,9 @@ def test_an_open_reflection_stream_blocks_nothing_with_one_worker(tmp_path, slot
             assert first.list_services_response.service
             assert _health(running.target) == health_pb2.HealthCheckResponse.SERVING
             with LabelingClient(running.target, timeout_s=10) as client:
-                assert client.label_kitti_frame(KITTI_SAMPLE, "000001").labels is not None
+                answer = client.label_kitti_frame(KITTI_SAMPLE, "000001")
+                assert answer.frame_id == "000001" and answer.model_version == slot.version
+                assert answer.store_outcome == pb2.STORE_OUTCOME_CREATED
             pending.close()
             responses.cancel()
 
@@ -155,7 +160,7 @@ def test_bytes_that_are_no_request_are_invalid_argument_logged_once(tmp_path, sl
 
 
 def _request(**changes):
-    request = LabelingClient.kitti_request(KITTI_SAMPLE, "000000")
+    request = request_message(kitti_frame(KITTI_SAMPLE, "000000"))
     for name, value in changes.items():
         setattr(request, name, value)
     return request

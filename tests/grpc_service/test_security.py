@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -16,12 +15,19 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from serving.client import LabelingClient
+from serving.config import ServerConfig
 from serving.metrics import ServiceMetrics
-from serving.server import BackgroundServer, ServerConfig
+from serving.request import FrameRequest, LabelOptions
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore, list_frames
+from serving.testing import BackgroundServer, self_signed_certificate
 from tests.conftest import KITTI_SAMPLE, REPO
-from tests.grpc_service.conftest import TORCH_FREE_SERVE, running_server, serve_process
+from tests.grpc_service.conftest import (
+    TORCH_FREE_SERVE,
+    prometheus_sample,
+    running_server,
+    serve_process,
+)
 
 
 @pytest.fixture
@@ -61,14 +67,7 @@ def test_bearer_token_is_required_except_for_health(tmp_path, slot):
 def certificate(tmp_path):
     if shutil.which("openssl") is None:
         pytest.skip("the openssl command is needed to make a test certificate")
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(
-        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
-         "-keyout", str(key), "-out", str(cert), "-subj", "/CN=localhost",
-         "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1"],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    return cert, key
+    return self_signed_certificate(tmp_path)
 
 
 def test_tls(tmp_path, slot, certificate):
@@ -89,19 +88,6 @@ def test_tls_needs_both_files(certificate):
         ServerConfig(tls_cert=certificate[0])
 
 
-def _metric(text: str, name: str, **labels: str) -> float:
-    """The value of one sample of a Prometheus text exposition (0 when absent)."""
-    wanted = {k: v for k, v in labels.items()}
-    for line in text.splitlines():
-        if not line.startswith(name + "{") and not line.startswith(name + " "):
-            continue
-        head, value = line.rsplit(" ", 1)
-        found = dict(re.findall(r'(\w+)="([^"]*)"', head))
-        if head.split("{")[0] == name and all(found.get(k) == v for k, v in wanted.items()):
-            return float(value)
-    return 0.0
-
-
 def test_metrics_count_every_request_at_the_edge(tmp_path, slot):
     """OK, INVALID_ARGUMENT, UNAUTHENTICATED, bytes that are no request and an over-size
     message are all counted, with the served model version; per-stage histograms, in-flight
@@ -115,10 +101,15 @@ def test_metrics_count_every_request_at_the_edge(tmp_path, slot):
         metrics_port = metrics.serve(0, "0.0.0.0")
         with LabelingClient(f"127.0.0.1:{port}", token="t0k") as client:
             response = client.label_kitti_frame(KITTI_SAMPLE, "000000")
+            not_stored = LabelOptions(store=False)
             with pytest.raises(grpc.RpcError):
-                client.label_frame("../x", b"", b"", store=False, calib=_calib())
+                client.label_frame(
+                    FrameRequest.from_arrays("../x", b"", b"", _calib(), options=not_stored)
+                )
             with pytest.raises(grpc.RpcError) as over:
-                client.label_frame("big", b"\0" * (5 * 1024 * 1024), b"", calib=_calib())
+                client.label_frame(
+                    FrameRequest.from_arrays("big", b"\0" * (5 * 1024 * 1024), b"", _calib())
+                )
             assert over.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
             garbage = client.channel.unary_unary("/detmatch.v1.AutoLabeler/LabelFrame")
             with pytest.raises(grpc.RpcError) as malformed:
@@ -138,25 +129,26 @@ def test_metrics_count_every_request_at_the_edge(tmp_path, slot):
         .decode()
     )
     version = slot.version
+
+    def metric(name: str, **labels: str) -> float:
+        return prometheus_sample(text, name, **labels)
+
     for code, count in (("OK", 1), ("INVALID_ARGUMENT", 2), ("RESOURCE_EXHAUSTED", 1)):
         labels = {"method": "LabelFrame", "code": code, "model_version": version}
-        assert _metric(text, "detmatch_requests_total", **labels) == count, (code, text)
-    assert _metric(text, "detmatch_errors_total", method="LabelFrame",
-                   code="RESOURCE_EXHAUSTED") == 1  # fmt: skip
-    assert _metric(text, "detmatch_requests_total", method="GetModelInfo",
-                   code="UNAUTHENTICATED", model_version=version) == 1  # fmt: skip
-    assert _metric(text, "detmatch_errors_total", method="GetModelInfo",
-                   code="UNAUTHENTICATED") == 1  # fmt: skip
-    assert _metric(text, "detmatch_request_seconds_count", method="LabelFrame") == 4
-    assert _metric(text, "detmatch_requests_in_flight", method="LabelFrame") == 0
+        assert metric("detmatch_requests_total", **labels) == count, (code, text)
+    assert metric("detmatch_errors_total", method="LabelFrame", code="RESOURCE_EXHAUSTED") == 1
+    assert metric("detmatch_requests_total", method="GetModelInfo", code="UNAUTHENTICATED",
+                  model_version=version) == 1  # fmt: skip
+    assert metric("detmatch_errors_total", method="GetModelInfo", code="UNAUTHENTICATED") == 1
+    assert metric("detmatch_request_seconds_count", method="LabelFrame") == 4
+    assert metric("detmatch_requests_in_flight", method="LabelFrame") == 0
     for stage in ("decode", "detector2d", "pillarize", "detector3d", "matching", "store"):
-        assert _metric(text, "detmatch_stage_seconds_count", stage=stage,
-                       model_version=version) == 1, stage  # fmt: skip
-    assert _metric(text, "detmatch_labels_total", model_version=version) == len(response.labels)
-    assert _metric(text, "detmatch_store_outcomes_total", outcome="created") == 1
-    assert _metric(text, "detmatch_model_info", version=version) == 1
-    assert _metric(text, "process_resident_memory_bytes") > 0
-    assert _metric(text, "process_open_fds") > 0
+        assert metric("detmatch_stage_seconds_count", stage=stage, model_version=version) == 1
+    assert metric("detmatch_labels_total", model_version=version) == len(response.labels)
+    assert metric("detmatch_store_outcomes_total", outcome="created") == 1
+    assert metric("detmatch_model_info", version=version) == 1
+    assert metric("process_resident_memory_bytes") > 0
+    assert metric("process_open_fds") > 0
 
 
 def test_metrics_host_is_configurable(tmp_path, exported_repository):
@@ -170,8 +162,10 @@ def test_metrics_host_is_configurable(tmp_path, exported_repository):
         address = json.loads(line)["address"]
         assert address.startswith("0.0.0.0:")
         port = int(address.rsplit(":", 1)[1])
-        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read()
-        assert b"detmatch_requests_total" in text or b"detmatch_requests" in text
+        url = f"http://127.0.0.1:{port}/metrics"
+        text = urllib.request.urlopen(url, timeout=10).read().decode()
+        # serve_process polled health until SERVING: the endpoint counts those calls.
+        assert prometheus_sample(text, "detmatch_requests_total", method="Check", code="OK") >= 1
 
 
 def _serve_command(repository, store, *args: str) -> list[str]:

@@ -2,19 +2,23 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import threading
 import time
+import urllib.request
 
 import grpc
 from grpc_health.v1 import health_pb2
 
-from serving.client import LabelingClient
-from serving.server import BackgroundServer, ServerConfig
+from serving.client import LabelingClient, kitti_frame, pb2
+from serving.config import ServerConfig
+from serving.messages import request_message
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore, check_integrity, list_frames
+from serving.testing import BackgroundServer
 from tests.conftest import KITTI_SAMPLE
-from tests.grpc_service.conftest import serve_process
+from tests.grpc_service.conftest import prometheus_sample, serve_process
 
 
 class BlockingLabeler:
@@ -41,7 +45,7 @@ def test_shutdown_drains_calls_in_flight(tmp_path, served_labeler):
     port = background.start()
     health = background.server.health
     with LabelingClient(f"127.0.0.1:{port}") as client:
-        future = client.stub.LabelFrame.future(_request(client), timeout=60)
+        future = client.stub.LabelFrame.future(_request(), timeout=60)
         assert blocking.entered.wait(30)
         stopper = threading.Thread(target=background.stop, args=(30.0,))
         stopper.start()
@@ -62,31 +66,38 @@ def test_shutdown_drains_calls_in_flight(tmp_path, served_labeler):
     store.close()
 
 
-def _request(client: LabelingClient):
-    from detmatch.data.kitti import KittiDataset
-    from serving.client import calibration_message, pb2
-    from serving.decode import encode_points
+def _request():
+    return request_message(kitti_frame(KITTI_SAMPLE, "000000"))
 
-    dataset = KittiDataset(KITTI_SAMPLE)
-    frame = dataset.load_frame("000000", with_labels=False)
-    return pb2.LabelFrameRequest(
-        frame_id="000000",
-        image=dataset.image_path("000000").read_bytes(),
-        points=encode_points(frame.points),
-        calibration=calibration_message(frame.calib),
-    )
+
+def _labeling_calls_in_flight(metrics_port: int) -> float:
+    url = f"http://127.0.0.1:{metrics_port}/metrics"
+    text = urllib.request.urlopen(url, timeout=10).read().decode()
+    return prometheus_sample(text, "detmatch_requests_in_flight", method="LabelFrame")
 
 
 def test_sigterm_drains_and_exits_cleanly(tmp_path, exported_repository):
-    """`detmatch serve` in a process that cannot import torch: serves, then drains on SIGTERM."""
+    """`detmatch serve` in a process that cannot import torch: serves, then drains on SIGTERM.
+    SIGTERM is sent once a LabelFrame call is in the server (the metrics' in-flight gauge),
+    so at least one call must finish OK during the drain; the others finish OK or are
+    refused (UNAVAILABLE); the frame is stored because a call for it was answered OK."""
     store = tmp_path / "store"
-    with serve_process(exported_repository, store, "--grace-s", "30") as (process, target):
+    args = ("--grace-s", "30", "--metrics-port", "0")
+    with serve_process(exported_repository, store, *args) as (process, target):
+        line = ""
+        while '"metrics endpoint"' not in line:
+            line = process.stderr.readline()
+            assert line, "no metrics endpoint line in the log"
+        metrics_port = int(json.loads(line)["address"].rsplit(":", 1)[1])
         with LabelingClient(target) as client:
             first = client.label_kitti_frame(KITTI_SAMPLE, "000001")
-            futures = [
-                client.stub.LabelFrame.future(_request(client), timeout=60) for _ in range(4)
-            ]
-            time.sleep(0.05)
+            futures = [client.stub.LabelFrame.future(_request(), timeout=60) for _ in range(4)]
+            deadline = time.monotonic() + 30
+            while _labeling_calls_in_flight(metrics_port) < 1 and not all(
+                f.done() for f in futures
+            ):
+                assert time.monotonic() < deadline, "no LabelFrame call reached the server"
+                time.sleep(0.005)
             process.send_signal(signal.SIGTERM)
             codes = []
             for future in futures:
@@ -97,8 +108,10 @@ def test_sigterm_drains_and_exits_cleanly(tmp_path, exported_repository):
                     codes.append(error.code())
         assert process.wait(timeout=60) == 0
         log = process.stderr.read()
-    assert first.labels is not None
-    assert set(codes) <= {grpc.StatusCode.OK, grpc.StatusCode.UNAVAILABLE}
+    assert first.model_version == "000001"
+    assert first.store_outcome == pb2.STORE_OUTCOME_CREATED
+    assert grpc.StatusCode.OK in codes, codes
+    assert set(codes) <= {grpc.StatusCode.OK, grpc.StatusCode.UNAVAILABLE}, codes
     assert '"message": "draining"' in log and '"message": "stopped"' in log
     stored = {r.frame_id for r in list_frames(store)}
     assert "000001" in stored
