@@ -3,8 +3,8 @@
 #   serve  the gRPC labeling service: the `serve` extra only (onnxruntime, grpc; no torch),
 #          a non-root user, port 50051 on all interfaces, a HEALTHCHECK through gRPC health.
 #            docker build --target serve -t detmatch-serve .
-#            docker run --rm -p 50051:50051 -v "$PWD/models:/models:ro" -v "$PWD/labels:/store" \
-#                detmatch-serve
+#            docker run --rm -p 50051:50051 -e DETMATCH_TOKEN -v "$PWD/models:/models:ro" \
+#                -v "$PWD/labels:/store" detmatch-serve
 #          The store volume must be writable by uid 10001 (or pass --user).
 #
 #   train  every command (synth, train, predict, eval, detmatch-export, label, serve), with
@@ -35,6 +35,7 @@ COPY detmatch ./detmatch
 COPY export ./export
 COPY serving ./serving
 COPY retrain ./retrain
+COPY commands ./commands
 RUN pip wheel --no-deps --wheel-dir /wheels .
 
 # The labeling service: no torch, no build tools.

@@ -24,7 +24,7 @@ class BuildPyWithStubs(build_py):
 
 setup(
     packages=[
-        *find_packages(include=["detmatch*", "export*", "serving*", "retrain*"]),
+        *find_packages(include=["detmatch*", "export*", "serving*", "retrain*", "commands*"]),
         "detmatch.configs",
     ],
     package_dir={"detmatch.configs": "configs"},

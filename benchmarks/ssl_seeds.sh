@@ -29,7 +29,7 @@ if [ "$PARALLEL" = 1 ]; then THREADS=${THREADS:-1}; else THREADS=${THREADS:-$COR
 mkdir -p "$RUNS/logs"
 
 if [ ! -f "$DATA/ImageSets/val.txt" ]; then
-    "$PYTHON" -m detmatch.cli synth --out "$DATA" --frames 2000 --seed 0 \
+    "$PYTHON" -m commands.main synth --out "$DATA" --frames 2000 --seed 0 \
         --workers "$CORES" --quiet
 fi
 failed=0

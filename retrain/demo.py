@@ -20,7 +20,6 @@ Sizes (`SIZES`) trade minutes for figures: "ci" and "small" (the default) run on
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import secrets
 import signal
@@ -28,71 +27,18 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
 from detmatch.config import ExperimentConfig, load_config, teacher_student_config
+from retrain.demo_report import verdict, write_demo_report
+from retrain.demo_results import DEFAULT_OUT, DEFAULT_SIZE, SIZES, DemoResults
 
-if TYPE_CHECKING:  # the command line imports this module for --help: no torch at import
+if TYPE_CHECKING:  # no torch at import: training is imported by the stages that train
     from detmatch.training.distributed import DistributedContext
-
-DEFAULT_OUT = "detmatch_demo"
-
-
-@dataclass(frozen=True)
-class DemoSize:
-    """frames: synthetic frames (val_fraction of them val, labeled_fraction of train labeled);
-    new_frames: unseen frames sent to the service; steps of each training stage."""
-
-    name: str
-    frames: int
-    new_frames: int
-    pretrain_steps: int
-    detmatch_steps: int
-    round_steps: int
-    labeled_fraction: float = 0.2
-    val_fraction: float = 0.25
-    config: str = "demo"
-    resolution: str = "half"
-    about: str = ""
-
-
-SIZES = {
-    size.name: size
-    for size in (
-        DemoSize("smoke", 10, 3, 4, 3, 2, labeled_fraction=0.4, val_fraction=0.3,
-                 config="tiny", about="under a minute: every stage runs, the figures mean nothing"),
-        DemoSize("ci", 48, 8, 200, 60, 30, labeled_fraction=0.3,
-                 about="about 3 minutes on 2 CPU cores, CI's main job"),
-        DemoSize("small", 160, 24, 500, 150, 80, labeled_fraction=0.25,
-                 about="about 10 minutes on 2 CPU cores, the default"),
-        DemoSize("medium", 600, 60, 1500, 600, 300, labeled_fraction=0.1,
-                 about="about an hour on 8 CPU cores, minutes on a GPU"),
-        DemoSize("large", 2000, 200, 3000, 600, 300, config="ssl_cpu", labeled_fraction=0.05,
-                 about="the benchmark's set-up, BENCHMARKS.md: a GPU"),
-    )
-}  # fmt: skip
-DEFAULT_SIZE = "small"
-
-
-@dataclass
-class DemoResults:
-    """What the report shows; filled in stage by stage."""
-
-    size: DemoSize
-    out: Path
-    seed: int
-    device: str = "cpu"
-    timings: dict[str, float] = field(default_factory=dict)
-    splits: dict[str, Any] = field(default_factory=dict)
-    labeled_only: dict[str, Any] = field(default_factory=dict)
-    detmatch: dict[str, Any] = field(default_factory=dict)
-    served: dict[str, Any] = field(default_factory=dict)
-    round: dict[str, Any] = field(default_factory=dict)
-    swap: dict[str, Any] = field(default_factory=dict)
 
 
 class Stages:
@@ -148,8 +94,6 @@ def run_demo(
         ).replace("train", eval_every=steps)
         results.detmatch = _train(detmatch_config, out / "runs" / "detmatch", context)
     with stage("compare", "labeled-only vs DetMatch on val"):
-        from retrain.demo_report import verdict
-
         print(verdict(results), file=sys.stderr)
     with stage("export", "export DetMatch to ONNX as version 000001, promoted"):
         from export.onnx_export import export_checkpoint
@@ -168,8 +112,6 @@ def run_demo(
         with stage("swap", "the running server picks up the promoted version"):
             _wait_for_swap(results, service)
     with stage("report", "report"):
-        from retrain.demo_report import write_demo_report
-
         results.timings["total"] = round(time.monotonic() - started, 1)
         report = write_demo_report(results)
     return report
@@ -235,7 +177,7 @@ def _server(out: Path, stage: Stages) -> Iterator[Service]:
     with stage("serve", "start `detmatch serve` (a real gRPC server process)"):
         logs = out / "logs"
         logs.mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "detmatch.cli", "serve", "--repository",
+        command = [sys.executable, "-m", "commands.main", "serve", "--repository",
                    str(out / "models"), "--store", str(out / "store"), "--port", "0",
                    "--shard", "demo", "--poll-s", "0.5", "--grace-s", "5"]  # fmt: skip
         stderr = (logs / "serve.log").open("w")
@@ -332,17 +274,3 @@ def _wait_for_swap(results: DemoResults, service: Service, timeout_s: float = 12
         "seconds": round(time.monotonic() - started, 1),
     }
     print(f"the server answers with version {response.model_version}", file=sys.stderr)
-
-
-def describe_sizes() -> str:
-    return "; ".join(
-        f"{s.name}: {s.frames} frames, steps {s.pretrain_steps}/{s.detmatch_steps}/"
-        f"{s.round_steps} ({s.about})"
-        for s in SIZES.values()
-    )
-
-
-def results_json(results: DemoResults) -> dict[str, Any]:
-    plain = asdict(results)
-    plain["out"] = str(results.out)
-    return json.loads(json.dumps(plain, default=str))

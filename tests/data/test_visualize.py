@@ -1,7 +1,7 @@
 import numpy as np
 from PIL import Image
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.data.kitti import KittiDataset
 from detmatch.data.visualize import CLASS_COLOURS
 

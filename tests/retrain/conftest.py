@@ -49,6 +49,6 @@ def retrain_process(*args: str, **popen) -> subprocess.Popen:
     piped as text."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
     return subprocess.Popen(
-        [sys.executable, "-m", "detmatch.cli", *args], cwd=REPO, env=env, text=True,
+        [sys.executable, "-m", "commands.main", *args], cwd=REPO, env=env, text=True,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, **popen,
     )  # fmt: skip

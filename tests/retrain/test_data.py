@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.data.kitti import KittiDataset, read_image_set, read_objects
 from retrain.data import (
     GATE_SPLIT,

@@ -9,7 +9,7 @@ import re
 
 from PIL import Image
 
-from detmatch.cli import main
+from commands.main import main
 from serving.repository import list_versions, served_version
 from serving.store import list_frames
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from detmatch.cli import main
+from commands.main import main
 from retrain.schedule import parse_period
 from serving.repository import list_versions
 from tests.retrain.conftest import retrain_args, retrain_process

@@ -3,7 +3,7 @@ import json
 import numpy as np
 from PIL import Image
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.data.kitti import KittiDataset, read_image_set, read_objects
 from detmatch.inference import detections_2d_to_objects, detections_3d_to_objects
 from detmatch.structures import Detections
@@ -99,7 +99,7 @@ def test_labeling_the_kitti_sample_as_shipped(exported_repository, kitti_sample,
     assert "mAP moderate" in capsys.readouterr().out
     # ImageSets are not there: --split says how to choose frames instead.
     assert main(["label", "--repository", str(exported_repository), "--data", str(kitti_sample),
-                 "--split", "val", "--out", str(out)]) == 2  # fmt: skip
+                 "--split", "val", "--out", str(tmp_path / "val")]) == 2  # fmt: skip
     assert "--all" in capsys.readouterr().err
 
 
@@ -177,3 +177,19 @@ def test_label_into_the_store_as_the_service_stores(
     assert main(["label", "--repository", str(exported_repository), "--data", str(stock),
                  "--all"]) == 2  # fmt: skip
     assert "give --out DIR" in capsys.readouterr().err
+
+
+def test_label_into_a_shard_another_process_holds_is_a_clear_error(
+    exported_repository, synth_root, tmp_path, capsys
+):
+    from serving.store import LabelStore
+
+    held = LabelStore(tmp_path / "store", "offline")  # as a running server holds its shard
+    try:
+        argv = ["label", "--repository", str(exported_repository), "--data", str(synth_root),
+                "--split", "val", "--store", str(tmp_path / "store")]  # fmt: skip
+        assert main(argv) == 2
+        error = capsys.readouterr().err
+        assert error.count("\n") == 1 and "--shard offline" in error and "another process" in error
+    finally:
+        held.close()

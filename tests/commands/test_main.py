@@ -12,12 +12,13 @@ from importlib.metadata import version
 
 import pytest
 
-from detmatch.cli import build_parser, main, refuse_existing_run
-from export.cli import build_parser as build_export_parser
+from commands.common import refuse_existing_run
+from commands.export import build_parser as build_export_parser
+from commands.main import build_parser, main
 from tests.conftest import REPO
 
 
-def run_cli(*args: str, module: str = "detmatch.cli") -> subprocess.CompletedProcess:
+def run_cli(*args: str, module: str = "commands.main") -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.run(
         [sys.executable, "-m", module, *args],
@@ -33,8 +34,29 @@ def test_version_of_both_commands():
     expected = version("detmatch")
     result = run_cli("--version")
     assert result.returncode == 0 and result.stdout.strip() == f"detmatch {expected}"
-    result = run_cli("--version", module="export.cli")
+    result = run_cli("--version", module="commands.export")
     assert result.returncode == 0 and result.stdout.strip() == f"detmatch-export {expected}"
+
+
+def test_every_help_and_version_without_torch():
+    """The `.[serve]` install has no torch: building both parsers (every --help and --version)
+    imports neither torch nor the layers below the commands; a command imports them when it
+    runs."""
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from commands import export, main\n"
+        "main.build_parser().format_help(); export.build_parser().format_help()\n"
+        "print(' '.join(sorted({m.split('.')[0] for m in sys.modules} & "
+        "{'torch', 'serving', 'export', 'grpc', 'onnxruntime'})))\n"
+        "main.main(['--version'])"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    imported, printed_version = result.stdout.splitlines()
+    assert imported == "torch"  # only the None that blocks it
+    assert printed_version == f"detmatch {version('detmatch')}"
 
 
 def _parsers(parser: argparse.ArgumentParser):

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from detmatch.cli import package_version, show_defaults
+from commands.common import package_version, show_defaults
 
 
 class PublishVersionOrShow(argparse.Action):
