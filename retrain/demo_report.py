@@ -13,7 +13,6 @@ REPORT/per_class_ap.png     the round's two models, per class (from the round's 
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import shutil
@@ -22,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from detmatch.files import atomic_write_bytes
-from retrain.demo import DemoResults, results_json
-from retrain.report import REPORT_JSON, ap_table, data_table
+from retrain.demo_results import DemoResults, results_json
+from retrain.report import REPORT_JSON, ap_table, data_table, figure_png
 from serving.manifest import GateFigures, RoundData
 
 MODALITIES = (("3d", "3D"), ("2d", "2D"))
@@ -37,7 +36,7 @@ def verdict(results: DemoResults) -> str:
     lost = [label for key, label in MODALITIES if label not in beat]
     numbers = "; ".join(
         f"{label} mAP {after[key]['mAP']:.1f} vs {before[key]['mAP']:.1f} "
-        f"({after[key]['mAP'] - before[key]['mAP']:+.1f})"
+        f"({signed(after[key]['mAP'] - before[key]['mAP'])})"
         for key, label in MODALITIES
     )
     size = results.size
@@ -49,10 +48,16 @@ def verdict(results: DemoResults) -> str:
     if len(beat) == len(MODALITIES):
         head = f"DetMatch beat labeled-only in both 2D and 3D {where}"
     elif not beat:
-        head = f"DetMatch did not beat labeled-only {where}, in neither 2D nor 3D"
+        head = f"DetMatch did not beat labeled-only in 2D or 3D {where}"
     else:
         head = f"DetMatch beat labeled-only in {beat[0]} but not in {lost[0]} {where}"
     return f"{head}: {numbers} (DetMatch vs labeled-only, moderate R40 on val)."
+
+
+def signed(gain: float) -> str:
+    """A gain to one decimal with its sign; one that rounds to zero is 0.0 (never -0.0)."""
+    rounded = round(gain, 1)
+    return "0.0" if rounded == 0 else f"{rounded:+.1f}"
 
 
 def _ap_rows(results: DemoResults) -> list[str]:
@@ -63,18 +68,21 @@ def _ap_rows(results: DemoResults) -> list[str]:
             cell = f"**{name}**" if name == "mAP" else name
             rows.append(
                 f"| {label} | {cell} | {before[name]:.1f} | {after[name]:.1f} | "
-                f"{after[name] - before[name]:+.1f} |"
+                f"{signed(after[name] - before[name])} |"
             )
     return rows
 
 
-def plot_curves(runs: dict[str, Path]) -> bytes:
-    """PNG: loss_2d and loss_3d against the step of each run's metrics.jsonl."""
+def curves_figure(runs: dict[str, Path]):
+    """A matplotlib Figure: loss_2d and loss_3d against the step of each run's metrics.jsonl;
+    a log axis labelled with plain numbers where the losses span a decade, whole steps."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 
+    plain = FuncFormatter(lambda value, _: f"{value:g}")
     figure, axes = plt.subplots(1, len(runs), figsize=(5 * len(runs), 3.6), dpi=100)
     for axis, (name, run) in zip(np.atleast_1d(axes), runs.items(), strict=True):
         records = []
@@ -87,14 +95,22 @@ def plot_curves(runs: dict[str, Path]) -> bytes:
             axis.plot(steps, [r[key] for r in records], label=key, color=colour)
         axis.set_title(name)
         axis.set_xlabel("step")
-        axis.set_yscale("log")
+        losses = [r[key] for r in records for key in ("loss_2d", "loss_3d") if r[key] > 0]
+        if losses and max(losses) >= 10 * min(losses):  # a decade or more: log, 1-2-5 ticks
+            axis.set_yscale("log")
+            axis.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+            axis.yaxis.set_major_formatter(plain)
+            axis.yaxis.set_minor_formatter(NullFormatter())
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True))
         axis.grid(alpha=0.3)
         axis.legend()
     figure.tight_layout()
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    plt.close(figure)
-    return buffer.getvalue()
+    return figure
+
+
+def plot_curves(runs: dict[str, Path]) -> bytes:
+    """PNG bytes of `curves_figure`."""
+    return figure_png(curves_figure(runs))
 
 
 def figure3_points(checkpoint: Path, data_root: Path, split: str) -> np.ndarray:
@@ -164,10 +180,7 @@ def plot_figure3(points: np.ndarray, tau_hung: float) -> tuple[bytes, dict[str, 
         axis.set_ylabel("true 3D IoU with ground truth")
         axis.set_ylim(0, 1)
     figure.tight_layout()
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    plt.close(figure)
-    return buffer.getvalue(), correlation
+    return figure_png(figure), correlation
 
 
 def draw_served_frames(results: DemoResults, report: Path) -> list[str]:

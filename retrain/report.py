@@ -53,19 +53,22 @@ def data_table(data: RoundData) -> str:
     )
 
 
-def plot_per_class_ap(
-    parent: GateFigures, candidate: GateFigures, parent_name: str, name: str
-) -> bytes:
-    """PNG bytes: grouped bars of both models' AP per class and mAP, one panel per modality."""
+def per_class_ap_figure(parent: GateFigures, candidate: GateFigures, parent_name: str, name: str):
+    """A matplotlib Figure: grouped bars of both models' AP per class and mAP, one panel per
+    modality, on one y-axis whose limit leaves room for every bar and its value."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    figure, axes = plt.subplots(1, 3, figsize=(13, 3.8), dpi=100, sharey=True)
-    for axis, (modality, label) in zip(axes, MODALITY_NAMES.items(), strict=True):
-        before, after = getattr(parent, f"ap_{modality}"), getattr(candidate, f"ap_{modality}")
+    panels = [
+        (label, getattr(parent, f"ap_{modality}"), getattr(candidate, f"ap_{modality}"))
+        for modality, label in MODALITY_NAMES.items()
+    ]
+    top = max(1.0, *(v for _, before, after in panels for v in (*before.values(), *after.values())))
+    figure, axes = plt.subplots(1, len(panels), figsize=(13, 3.8), dpi=100, sharey=True)
+    for axis, (label, before, after) in zip(axes, panels, strict=True):
         keys = [k for k in before if k != "mAP"] + ["mAP"]
         x = np.arange(len(keys))
         for offset, values, bar_name, colour in (
@@ -77,12 +80,26 @@ def plot_per_class_ap(
             )
             axis.bar_label(bars, fmt="%.1f", fontsize=7)
         axis.set_xticks(x, keys)
-        axis.set_ylim(0, max(1.0, *before.values(), *after.values()) * 1.15)
         axis.set_title(f"{label} moderate AP (R40)")
         axis.grid(axis="y", alpha=0.3)
+    axes[0].set_ylim(0, top * 1.15)  # shared: one limit for every panel
     axes[0].set_ylabel("AP (%)")
-    axes[0].legend()
-    figure.tight_layout()
+    figure.legend(*axes[0].get_legend_handles_labels(), loc="upper right", ncols=2, fontsize=8)
+    figure.tight_layout(rect=(0, 0, 1, 0.92))
+    return figure
+
+
+def plot_per_class_ap(
+    parent: GateFigures, candidate: GateFigures, parent_name: str, name: str
+) -> bytes:
+    """PNG bytes of `per_class_ap_figure`."""
+    return figure_png(per_class_ap_figure(parent, candidate, parent_name, name))
+
+
+def figure_png(figure) -> bytes:
+    """A matplotlib Figure as PNG bytes; the figure is closed."""
+    import matplotlib.pyplot as plt
+
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png")
     plt.close(figure)
