@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from detmatch.cli import main
+from commands.main import main
 from detmatch.data.kitti import (
     KittiDataset,
     KittiObjects,
@@ -162,8 +162,9 @@ def test_a_regressing_round_is_published_but_not_promoted(tmp_path, round_data, 
                  "--store", str(store)]) == 0  # fmt: skip
     capsys.readouterr()
     # The round's teachers follow their students at once (EMA decay 0) and the 3D student
-    # takes steps over 100 times the stage's ([ssl] lr_3d, the round's rate): the candidate's
-    # 3D boxes move.
+    # takes steps 100 times the stage's ([ssl] lr_3d, the round's rate): the candidate's
+    # 3D boxes move. (At 250 times, the blown-up 3D head's onnxruntime and PyTorch outputs
+    # differ by 0.009 on one of 32768 regression values and the export check refuses it.)
     # A round trains the [ssl] stage: overriding pre-training's rate is refused, naming it.
     assert main(retrain_args(store, round_data, repository, "--set", "train.lr_3d=0.05")) == 2
     assert "set ssl.lr_3d" in capsys.readouterr().err
@@ -172,7 +173,7 @@ def test_a_regressing_round_is_published_but_not_promoted(tmp_path, round_data, 
     assert not (repository / "000002").exists()
     args = retrain_args(store, round_data, repository, "--set", "data.val_split=gate",
                         "--set", "retrain.steps=3", "--set", "retrain.max_map_drop=0",
-                        "--set", "ssl.lr_3d=0.05", "--set", "ssl.ema_max_decay=0",
+                        "--set", "ssl.lr_3d=0.02", "--set", "ssl.ema_max_decay=0",
                         "--set", "ssl.ema_offset=1")  # fmt: skip
     assert main(args) == 0
     out = capsys.readouterr().out
@@ -250,7 +251,7 @@ def test_a_round_under_torchrun_trains_on_every_rank_and_publishes_once(
     torchrun = Path(sys.executable).parent / "torchrun"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
     result = subprocess.run(
-        [str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "detmatch.cli", *args],
+        [str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "commands.main", *args],
         cwd=REPO, env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
