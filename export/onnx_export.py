@@ -86,7 +86,8 @@ def export_checkpoint(
     if parity_data is None:
         training_data = Path(config.data.root)
         parity_data = [training_data] if (training_data / "training" / "image_2").is_dir() else []
-        log(f"parity frames from the training data: {parity_data or 'not found'}")
+        found = ", ".join(str(path) for path in parity_data) or "not found"
+        log(f"parity frames from the training data: {found}")
     if synthetic_frames < 1 and not parity_data:
         raise ValueError("parity needs frames: synthetic_frames >= 1 or some parity_data")
     frames = load_parity_frames(synthetic_frames, parity_data, parity_frames_per_source)
