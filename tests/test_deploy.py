@@ -116,3 +116,39 @@ def test_retraining_cronjob_runs_one_round_at_a_time_on_the_served_volumes():
     assert pod["securityContext"]["runAsUser"] == int(user.group(1))
     cron = (REPO / "examples" / "cron" / "detmatch-retrain").read_text()
     assert re.search(r"^0 3 \* \* \* detmatch \S+/detmatch retrain --store", cron, re.MULTILINE)
+
+
+def _documented_serve_runs() -> list[str]:
+    """Every `docker run ... detmatch-serve` command in the README, docs/ and the Dockerfile's
+    comments (continuation lines joined)."""
+    sources = [REPO / "README.md", DOCKERFILE, *sorted((REPO / "docs").glob("*.md"))]
+    runs = []
+    for path in sources:
+        text = re.sub(r"\\\n[#\s]*", " ", path.read_text())
+        runs += [m.group(0) for m in re.finditer(r"docker run[^\n]*detmatch-serve[^\n]*", text)]
+    return runs
+
+
+def test_documented_docker_runs_of_the_service_satisfy_its_auth_rule():
+    runs = _documented_serve_runs()
+    assert runs, "the docs show how to run the serve image"
+    for run in runs:
+        assert re.search(r"-e DETMATCH_TOKEN\b", run) or "--no-auth" in run, run
+
+
+def test_every_flag_the_image_and_kubernetes_pass_to_serve_exists():
+    from commands.main import build_parser
+
+    serve = next(
+        action.choices["serve"]
+        for action in build_parser()._actions
+        if getattr(action, "choices", None) and "serve" in action.choices
+    )
+    known = {option for action in serve._actions for option in action.option_strings}
+    cmd = next(line for line in dockerfile_stages()["serve"] if line.startswith("CMD"))
+    image_flags = [a for a in re.findall(r'"([^"]+)"', cmd) if a.startswith("--")]
+    documents = {d["kind"]: d for d in yaml.safe_load_all(KUBERNETES.read_text())}
+    (container,) = documents["Deployment"]["spec"]["template"]["spec"]["containers"]
+    pod_flags = [a.split("=")[0] for a in container["args"] if a.startswith("--")]
+    assert image_flags and pod_flags
+    assert set(image_flags + pod_flags) <= known, set(image_flags + pod_flags) - known
