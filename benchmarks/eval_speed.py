@@ -7,12 +7,11 @@ and times `evaluate_dirs` end to end, then its parts: reading the files, flatten
 2D / BEV / 3D overlaps and the matching statistics. Numba's compile time (cold cache) and its
 cache-load time are measured in fresh subprocesses.
 
-    python benchmarks/eval_speed.py [--frames 3769] [--seed 0] [--repeats 3] [--clutter 8]
+    python -m benchmarks.eval_speed [--frames 3769] [--seed 0] [--repeats 3] [--clutter 8]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import subprocess
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.data.kitti import KittiObjects, read_objects, write_objects
 from detmatch.eval.kitti import (
     NEIGHBOUR_CLASS,
@@ -150,7 +150,7 @@ def compile_times() -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--frames", type=int, default=3769)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeats", type=int, default=3)
@@ -202,10 +202,7 @@ def main() -> None:
     print(f"  matching statistics      {stats:7.2f} s")
     print(f"numba first call, cold cache (compile)  {cold:6.2f} s")
     print(f"numba first call, warm cache (load)     {warm:6.2f} s")
-    print(
-        f"rerun: python benchmarks/eval_speed.py --frames {args.frames} --seed {args.seed}"
-        f" --clutter {args.clutter:g} --repeats {args.repeats}"
-    )
+    print(f"rerun: {rerun('eval_speed')}")
 
 
 if __name__ == "__main__":

@@ -2,35 +2,32 @@
 (ground-truth sampling, rotation and scale, flip, multi-scale window) made into samples, one
 thread, the way a data worker (or a run without workers) does it.
 
-    python benchmarks/loader_speed.py --config configs/ssl_cpu.toml --data data/synth2k \
+    python -m benchmarks.loader_speed --config configs/ssl_cpu.toml --data data/synth2k \
         [--frames 40] [--rounds 3]
 
 Prints milliseconds per frame (median of the rounds) and the command to rerun. To compare
 with an older checkout, run this file against it (old-vs-new ratios in one farm-bench run):
 
-    OLD="PYTHONPATH=/path/to/old exec python benchmarks/loader_speed.py --data data/synth2k"
+    OLD="PYTHONPATH=/path/to/old exec python -m benchmarks.loader_speed --data data/synth2k"
     farm-bench -n 5 --timeout 300 --vs "sh -c '$OLD'" \
-        -- python benchmarks/loader_speed.py --data data/synth2k
+        -- python -m benchmarks.loader_speed --data data/synth2k
 """
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import sys
 import time
 
 import torch
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.config import load_config
 from detmatch.models.build import build_detectors
 from detmatch.training.trainer import labeled_training_frames
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--config", default="configs/ssl_cpu.toml")
     parser.add_argument("--data", required=True)
     parser.add_argument("--frames", type=int, default=40, help="samples a round")
@@ -54,7 +51,7 @@ def main() -> None:
     print(f"split {data.train_split}: {len(dataset)} frames, set-up {setup:.1f} s")
     print(f"pre-training sample: {statistics.median(per_frame):.1f} ms a frame "
           f"(rounds: {', '.join(f'{t:.1f}' for t in per_frame)})")  # fmt: skip
-    print("rerun: python " + " ".join(sys.argv))
+    print(f"rerun: {rerun('loader_speed')}")
 
 
 if __name__ == "__main__":

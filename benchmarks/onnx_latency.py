@@ -1,6 +1,6 @@
 """onnxruntime against PyTorch eager, and the labeler's overhead, on CPU at full KITTI resolution.
 
-    python benchmarks/onnx_latency.py [--configs configs/tiny.toml configs/synth_cpu.toml]
+    python -m benchmarks.onnx_latency [--configs configs/tiny.toml configs/synth_cpu.toml]
                                       [--threads 1 2] [--repeats 20]
 
 Per config, both detectors with random weights (torch.manual_seed(0); latency does not depend on
@@ -32,6 +32,8 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.harness import benchmark_parser, rerun
 
 WARM_UP = 3
 # onnxruntime settings compared with the labeler's (graph optimisation "all", no spinning).
@@ -203,9 +205,7 @@ def run_worker(kind: str, **options: object) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument(
         "--configs", nargs="+", default=["configs/tiny.toml", "configs/synth_cpu.toml"]
     )
@@ -284,10 +284,7 @@ def main() -> None:
         print(f"{row['config']}: {row['torch']['pillars']} pillars")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
-    command = " ".join(["python", "benchmarks/onnx_latency.py", "--configs", *args.configs,
-                        "--threads", *map(str, args.threads),
-                        "--repeats", str(args.repeats)])  # fmt: skip
-    print(f"\nrerun: {command}")
+    print(f"\nrerun: {rerun('onnx_latency')}")
 
 
 if __name__ == "__main__":

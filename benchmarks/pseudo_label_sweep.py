@@ -17,10 +17,9 @@ outside the camera's view take no part, as in the benchmark's table.
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 
+from benchmarks.harness import benchmark_parser, rerun
 from benchmarks.ssl_benchmark import (
     IOU_2D,
     IOU_3D,
@@ -60,7 +59,7 @@ def at_equal_recall(sweep: dict[float, dict], recall: float) -> tuple[float, dic
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("checkpoint", type=Path, help="pre-training checkpoint or run directory")
     parser.add_argument("--split", required=True, help="a split with known labels (never val)")
     parser.add_argument("--config", default="configs/ssl_cpu.toml")
@@ -119,7 +118,7 @@ def main() -> None:
             for c in classes
         ]
         print(f"| {t:.2f} | " + " | ".join(cells) + " |")
-    print("\nrerun: python -m benchmarks.pseudo_label_sweep " + " ".join(sys.argv[1:]))
+    print(f"\nrerun: {rerun('pseudo_label_sweep')}")
 
 
 if __name__ == "__main__":

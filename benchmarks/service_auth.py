@@ -13,7 +13,6 @@ Starting without a token and without --no-auth must fail (exit 2).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -25,12 +24,12 @@ from pathlib import Path
 
 import grpc
 
+from benchmarks.harness import benchmark_parser, rerun
 from benchmarks.service_common import (
     REPO,
     TORCH_FREE_SERVE,
     percentiles,
     prepare_repository,
-    rerun,
     sample_requests,
     serve,
 )
@@ -114,9 +113,7 @@ def refusals(target: str, cert: Path | None, token: str | None) -> dict[str, str
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--clients", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--config", default="configs/tiny.toml")

@@ -197,7 +197,3 @@ def percentiles(seconds: list[float]) -> dict[str, float]:
         "p99_ms": float(np.percentile(values, 99)),
         "max_ms": float(values.max()),
     }
-
-
-def rerun(module: str, argv: list[str]) -> str:
-    return " ".join(["python", "-m", f"benchmarks.{module}", *argv])

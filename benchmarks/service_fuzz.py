@@ -18,7 +18,6 @@ error lines in its log (target: 0), and its RSS (peak and at the end, target: bo
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import random
@@ -32,7 +31,8 @@ import grpc
 import numpy as np
 from PIL import Image
 
-from benchmarks.service_common import RssSampler, prepare_repository, rerun, serve
+from benchmarks.harness import benchmark_parser, rerun
+from benchmarks.service_common import RssSampler, prepare_repository, serve
 
 LABEL_FRAME = "/detmatch.v1.AutoLabeler/LabelFrame"
 
@@ -268,9 +268,7 @@ def stored_keys(store: Path) -> set[tuple[str, str]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--cases", type=int, default=1200)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--config", default="configs/tiny.toml")

@@ -14,7 +14,6 @@ time from a good version's promotion to the first answer it gave.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import tempfile
@@ -25,7 +24,8 @@ from pathlib import Path
 
 import grpc
 
-from benchmarks.service_common import percentiles, prepare_repository, rerun, sample_requests, serve
+from benchmarks.harness import benchmark_parser, rerun
+from benchmarks.service_common import percentiles, prepare_repository, sample_requests, serve
 
 SEQUENCE = ("good", "corrupt", "good", "hand-copied", "good", "corrupt", "good")
 
@@ -54,9 +54,7 @@ def publish(repository: Path, version: str, kind: str) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--clients", type=int, default=2)
     parser.add_argument("--interval-s", type=float, default=2.0)
     parser.add_argument("--config", default="configs/tiny.toml")

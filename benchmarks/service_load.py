@@ -17,7 +17,6 @@ latency, failed calls (target 0), the server's RSS at the start, its peak and at
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import threading
@@ -26,12 +25,12 @@ from pathlib import Path
 
 import grpc
 
+from benchmarks.harness import benchmark_parser, rerun
 from benchmarks.service_common import (
     RssSampler,
     cpu_seconds,
     percentiles,
     prepare_repository,
-    rerun,
     sample_requests,
     serve,
 )
@@ -96,9 +95,7 @@ def merge(parts: list[dict]) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--clients", nargs="+", type=int, default=[1, 2, 4, 8])
     parser.add_argument("--seconds", type=float, default=12.0, help="per client count and mode")
     parser.add_argument(

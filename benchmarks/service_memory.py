@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.service_common import REPO, prepare_repository, rerun
+from benchmarks.harness import benchmark_parser, rerun
+from benchmarks.service_common import REPO, prepare_repository
 
 WARM_UP = 3
 
@@ -75,9 +76,7 @@ def worker(version_dir: str, arena: bool, repeats: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--rounds", type=int, default=2, help="alternating runs per setting")
     parser.add_argument("--config", default="configs/synth_cpu.toml")

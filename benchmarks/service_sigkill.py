@@ -17,7 +17,6 @@ lines.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import random
@@ -28,7 +27,8 @@ from pathlib import Path
 
 import grpc
 
-from benchmarks.service_common import prepare_repository, rerun, sample_requests, serve
+from benchmarks.harness import benchmark_parser, rerun
+from benchmarks.service_common import prepare_repository, sample_requests, serve
 
 
 def label_until(target: str, stop: threading.Event, worker: int, round_: int, acked: dict):
@@ -52,9 +52,7 @@ def label_until(target: str, stop: threading.Event, worker: int, round_: int, ac
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--kills", type=int, default=20)
     parser.add_argument("--clients", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)

@@ -17,7 +17,6 @@ this replaced stopped answering anything, health included, once --workers stream
 
 from __future__ import annotations
 
-import argparse
 import json
 import socket
 import tempfile
@@ -27,10 +26,10 @@ from pathlib import Path
 
 import grpc
 
+from benchmarks.harness import benchmark_parser, rerun
 from benchmarks.service_common import (
     percentiles,
     prepare_repository,
-    rerun,
     sample_requests,
     serve,
 )
@@ -160,9 +159,7 @@ def measure(target: str, seconds: float) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=10.0, help="length of each phase")
     parser.add_argument("--receive-timeout-s", type=float, default=15.0)

@@ -3,7 +3,7 @@ labeled-only vs its EMA control vs confidence thresholding vs DetMatch, from the
 pre-trained weights on the same labeled split, under the dev protocol.
 
     detmatch synth --out data/synth2k --frames 2000 --seed 0 --workers 2
-    python benchmarks/ssl_benchmark.py --config configs/ssl_cpu.toml --data data/synth2k \
+    python -m benchmarks.ssl_benchmark --config configs/ssl_cpu.toml --data data/synth2k \
         --seed 0 --out runs/ssl_s0
 
 Protocol: `detmatch split --fraction F --seed S --dev-fraction D` (made here when missing)
@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.checkpoints import list_checkpoints, run_evaluations
 from detmatch.config import (
     DEVICES,
@@ -475,9 +476,7 @@ def ap_table(results: dict[str, dict], modality: str, classes: tuple[str, ...]) 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--config", default="configs/ssl_cpu.toml")
     parser.add_argument("--data", required=True)
     parser.add_argument("--out", required=True)
@@ -612,7 +611,7 @@ def main() -> None:
         for level, r in levels.items():
             lines.append(f"| {name} | {level} | {r['objects']} | {r['2d']:.1f} | {r['3d']:.1f} |")
     lines += ["", f"Wall seconds: {json.dumps({k: round(v) for k, v in timings.items()})}"]
-    lines += ["", "rerun: python " + " ".join(sys.argv)]
+    lines += ["", f"rerun: {rerun('ssl_benchmark')}"]
     report = "\n".join(lines) + "\n"
     (out / "report.md").write_text(report)
     print(report)
@@ -626,7 +625,7 @@ def main() -> None:
         "figure4": recall,
         "figure4_pr": occlusion_ap,
         "train_wall_s": timings,
-        "command": " ".join(sys.argv),
+        "command": rerun("ssl_benchmark"),
     }
     (out / "ssl_benchmark.json").write_text(json.dumps(summary, indent=2))
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The semi-supervised benchmark over several split seeds: one benchmarks/ssl_benchmark.py
+# The semi-supervised benchmark over several split seeds: one benchmarks.ssl_benchmark
 # process per seed, then the summary over seeds and the issue-14 targets (BENCHMARKS.md).
 # With a GPU the seeds run all at once (they share the GPU and its cores); without one they
 # run one after another, each with every core (two torch processes on a few cores slow each
@@ -35,7 +35,7 @@ fi
 failed=0
 run_seed() {
     OMP_NUM_THREADS=$THREADS ${STAGE_TIMEOUT:+timeout "$STAGE_TIMEOUT"} "$PYTHON" \
-        benchmarks/ssl_benchmark.py --config "$CONFIG" --data "$DATA" --seed "$1" \
+        -m benchmarks.ssl_benchmark --config "$CONFIG" --data "$DATA" --seed "$1" \
         --out "$RUNS/s$1" --device "$DEVICE" "${@:2}" >"$RUNS/logs/s$1.log" 2>&1
 }
 for seed in $SEEDS; do
@@ -52,6 +52,6 @@ for seed in $SEEDS; do
     [ -f "$RUNS/s$seed/ssl_benchmark.json" ] && reports+=("$RUNS/s$seed/ssl_benchmark.json")
 done
 if [ ${#reports[@]} -gt 0 ]; then
-    "$PYTHON" benchmarks/ssl_summary.py "${reports[@]}" | tee "$RUNS/summary.md"
+    "$PYTHON" -m benchmarks.ssl_summary "${reports[@]}" | tee "$RUNS/summary.md"
 fi
 exit $failed

@@ -1,6 +1,6 @@
 """Mean and per-seed results of several ssl_benchmark.py reports (one per split seed).
 
-    python benchmarks/ssl_summary.py runs/ssl/s*/ssl_benchmark.json [--split val|dev]
+    python -m benchmarks.ssl_summary runs/ssl/s*/ssl_benchmark.json [--split val|dev]
 
 Prints, per modality, one row per method: moderate R40 mAP of each seed, their mean, and the
 mean gain over the better of labeled-only and its EMA control (per seed); per-class means;
@@ -12,11 +12,11 @@ of --method (default detmatch): each gain per seed, its mean, the goal, met or m
 
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.eval.pseudo_labels import pooled_precision_recall_f1
 
 BASELINES = ("labeled-only", "control")
@@ -116,7 +116,7 @@ def pooled_quality(reports: list[dict], rule: str, name: str, modality: str) -> 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("reports", nargs="+", type=Path, help="ssl_benchmark.json files")
     parser.add_argument("--split", default="val", choices=("val", "dev"))
     parser.add_argument("--method", default="detmatch", help="the method the targets judge")
@@ -170,9 +170,7 @@ def main() -> None:
                 cells = [f"{row['2d']:.1f} / {row['3d']:.1f}" for row in rows]
                 print(f"| {name} | {level} | " + " | ".join(cells) + " |")
     print_targets(reports, results, names, classes, args.method, args.split)
-    reports = " ".join(map(str, args.reports))
-    print(f"\nrerun: python benchmarks/ssl_summary.py {reports} --split {args.split} "
-          f"--method {args.method}")  # fmt: skip
+    print(f"\nrerun: {rerun('ssl_summary')}")
 
 
 def print_targets(

@@ -1,10 +1,10 @@
 """Fully supervised accuracy of both detectors on a synthetic set, within a stated CPU budget.
 
     detmatch synth --out data/synth2k --frames 2000 --seed 0 --workers 2
-    python benchmarks/supervised_accuracy.py --config configs/synth_cpu.toml --data data/synth2k \
+    python -m benchmarks.supervised_accuracy --config configs/synth_cpu.toml --data data/synth2k \
         --out runs/supervised_cpu
     # the ceiling of the semi-supervised benchmark: its pre-training recipe on every train label
-    python benchmarks/supervised_accuracy.py --config configs/ssl_cpu.toml --data data/synth2k \
+    python -m benchmarks.supervised_accuracy --config configs/ssl_cpu.toml --data data/synth2k \
         --out runs/ceiling --set data.train_split=train --set data.val_split=val \
         --set train.eval_every=3000
 
@@ -16,13 +16,12 @@ CPU time of training, and the command to rerun. --resume continues an interrupte
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
-import sys
 import time
 from pathlib import Path
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.config import apply_overrides, load_config
 from detmatch.training.distributed import init_distributed
 from detmatch.training.trainer import SupervisedTrainer
@@ -35,9 +34,7 @@ def cpu_seconds() -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--config", default="configs/synth_cpu.toml")
     parser.add_argument("--data", required=True)
     parser.add_argument("--out", required=True)
@@ -76,7 +73,7 @@ def main() -> None:
     summary = {k: metrics[k] for k in ("2d", "bev", "3d")}
     summary.update(wall_s=round(wall, 1), cpu_s=round(cpu, 1), train_frames=frames)
     (Path(args.out) / "benchmark.json").write_text(json.dumps(summary, indent=2))
-    print("rerun: python " + " ".join(sys.argv))
+    print(f"rerun: {rerun('supervised_accuracy')}")
 
 
 if __name__ == "__main__":

@@ -1,17 +1,17 @@
 """Synthetic data generation speed: frames per second at half and full resolution, 1 and 2
 worker processes, whole frames written to disk (sampling, ray casting, labels, PNG, .bin).
 
-    python benchmarks/synth_speed.py [--frames N] [--seed S]
+    python -m benchmarks.synth_speed [--frames N] [--seed S]
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.data.synth import generate_dataset
 
 
@@ -24,7 +24,7 @@ def measure(frames: int, seed: int, resolution: str, workers: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--frames", type=int, default=16, help="frames per measurement")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -37,8 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'resolution':<11}{'workers':>8}{'seconds':>10}{'frames/s':>10}{'per worker':>12}")
     for resolution, workers, seconds, rate in rows:
         print(f"{resolution:<11}{workers:>8}{seconds:>10.2f}{rate:>10.2f}{rate / workers:>12.2f}")
-    command = f"python benchmarks/synth_speed.py --frames {args.frames} --seed {args.seed}"
-    print(f"\n{args.frames} frames each; rerun: {command}")
+    print(f"\n{args.frames} frames each; rerun: {rerun('synth_speed', argv)}")
     return 0
 
 

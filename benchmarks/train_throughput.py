@@ -1,7 +1,7 @@
 """Training throughput (forward + backward, frames/s) of each detector on this machine's CPU,
 with parameter counts and forward FLOPs per frame.
 
-    python benchmarks/train_throughput.py --config configs/synth_cpu.toml [--data DIR]
+    python -m benchmarks.train_throughput --config configs/synth_cpu.toml [--data DIR]
         [--batch 4] [--iters 10] [--rounds 3]
 
 Measures the training step before and after the speed-up in one run, alternating: "before" is
@@ -13,14 +13,13 @@ first frames (or generated ground-and-walls clouds of about 60k points).
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
 
 import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from benchmarks.harness import benchmark_parser, rerun
 from detmatch.config import load_config
 from detmatch.data.dataset import collate_pillars
 from detmatch.data.kitti import KittiDataset
@@ -94,9 +93,7 @@ def variant_steps(config, batch: int, clouds: list[np.ndarray], fast: bool):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--config", default="configs/synth_cpu.toml")
     parser.add_argument("--data", help="KITTI-layout directory: pillarize its first frames' "
                         "clouds instead of generated ones")  # fmt: skip
@@ -151,7 +148,7 @@ def main() -> None:
         print(f"| {name} | {parameters / 1e6:.2f} M | {flops.get_total_flops() / 1e9:.2f} | "
               f"{before:.1f} | {after:.1f} | {after / before:.2f}x |")  # fmt: skip
     print(f"pillarize (numpy, one frame of {len(cloud)} points): {pillarize_ms:.1f} ms")
-    print("rerun: python " + " ".join(sys.argv))
+    print(f"rerun: {rerun('train_throughput')}")
 
 
 if __name__ == "__main__":
