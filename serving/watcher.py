@@ -94,11 +94,12 @@ class RepositoryWatcher:
         old = self.slot.swap(labeler)
         self.failed.pop(version, None)
         self._said = None
+        previous = old.version if old is not None else None
         log.info(
-            "serving model version %s (was %s)",
+            "serving model version %s%s",
             version,
-            old and old.version,
-            extra={"fields": {"version": version, "previous": old and old.version}},
+            f" (was {previous})" if previous else "",
+            extra={"fields": {"version": version, "previous": previous}},
         )
         return True
 
