@@ -11,6 +11,7 @@ echoes more than a short excerpt of what the client sent.
 from __future__ import annotations
 
 import io
+import struct
 from collections.abc import Sequence
 
 import numpy as np
@@ -60,7 +61,12 @@ def decode_frame_id(frame_id: str) -> str:
 
 def decode_namespace(namespace: str | None) -> str:
     """The key's data-set namespace; empty or None is DEFAULT_NAMESPACE."""
-    return decode_id(namespace, "namespace") if namespace else DEFAULT_NAMESPACE
+    if not namespace:
+        return DEFAULT_NAMESPACE
+    namespace = decode_id(namespace, "namespace")
+    if namespace.startswith("-"):  # a directory named -rf is a trap for shell tools
+        raise InvalidInput(f"namespace: {namespace!r} starts with '-'")
+    return namespace
 
 
 def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> tuple[np.ndarray, str]:
@@ -74,27 +80,37 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> tup
         kind = "jpeg"
     else:
         raise InvalidInput(f"image: not PNG or JPEG (first bytes {data[:8].hex()})")
+    if kind == "png" and len(data) >= 24 and data[12:16] == b"IHDR":  # before Pillow's limit
+        _check_pixels(*struct.unpack(">II", data[16:24]), max_pixels)
     try:
         with Image.open(io.BytesIO(data), formats=(kind.upper(),)) as image:
-            width, height = image.size  # the header's, nothing decoded yet
-            if width * height > max_pixels:
-                raise InvalidInput(
-                    f"image: {width} x {height} pixels ({width * height}) exceeds the limit of "
-                    f"{max_pixels} pixels"
-                )
+            _check_pixels(*image.size, max_pixels)  # the header's, nothing decoded yet
             pixels = np.asarray(image.convert("RGB"))
     except InvalidInput:
         raise
     except MemoryError:
         raise
-    except Exception as error:  # noqa: BLE001 - any failure to decode client bytes is bad input
+    except Image.DecompressionBombError:
         raise InvalidInput(
-            f"image: cannot decode {kind.upper()} data: {type(error).__name__}: "
-            f"{excerpt(str(error), 200)}"
+            f"image: its header declares more pixels than the limit of {max_pixels}"
+        ) from None
+    except Exception:  # noqa: BLE001 - any failure to decode client bytes is bad input
+        # Pillow's text would name its own objects ("<_io.BytesIO object at 0x...>"): ours.
+        raise InvalidInput(
+            f"image: cannot decode {kind.upper()} data (corrupt, truncated or a zero-sized "
+            "image)"
         ) from None
     if pixels.ndim != 3 or pixels.shape[0] < 1 or pixels.shape[1] < 1:
         raise InvalidInput(f"image: empty image of shape {pixels.shape}")
     return pixels, kind
+
+
+def _check_pixels(width: int, height: int, max_pixels: int) -> None:
+    if width * height > max_pixels:
+        raise InvalidInput(
+            f"image: {width} x {height} pixels ({width * height}) exceeds the limit of "
+            f"{max_pixels} pixels"
+        )
 
 
 def decode_points(data: bytes) -> np.ndarray:

@@ -115,7 +115,7 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
         self.limited_prefix = limited_prefix
         self.warnings = RateLimitedWarnings(settings.warning_interval_s)
         self.in_flight = 0
-        self._expected = None if settings.token is None else f"Bearer {settings.token}".encode()
+        self._token = None if settings.token is None else settings.token.encode()
 
     async def intercept_service(self, continuation, handler_call_details):
         handler = await continuation(handler_call_details)
@@ -129,11 +129,16 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
         return _wrap(handler, self._run(path, authorized, handler))
 
     def _authorized(self, path: str, metadata) -> bool:
-        if self._expected is None or path.startswith(HEALTH_PREFIX):
+        """One `authorization: Bearer TOKEN` header (the scheme in any case, RFC 7235); none,
+        or two (which one would count is ambiguous), is refused."""
+        if self._token is None or path.startswith(HEALTH_PREFIX):
             return True
-        given = dict(metadata or ()).get("authorization", "")
-        given = given.encode() if isinstance(given, str) else bytes(given)
-        return hmac.compare_digest(given, self._expected)
+        given = [value for key, value in (metadata or ()) if key == "authorization"]
+        if len(given) != 1:
+            return False
+        value = given[0].encode() if isinstance(given[0], str) else bytes(given[0])
+        scheme, _, token = value.partition(b" ")
+        return scheme.lower() == b"bearer" and hmac.compare_digest(token, self._token)
 
     def _run(self, path: str, authorized: bool, handler: grpc.RpcMethodHandler):
         """The wrapped call: a coroutine (request_iterator, context) -> the handler's answer."""

@@ -87,13 +87,17 @@ UPSERT = f"INSERT OR REPLACE INTO frames VALUES ({', '.join('?' * len(COLUMNS))}
 
 
 def validate_namespace(namespace: str) -> str:
-    """Namespaces are directory names: the frame id's rules (1-64 letters, digits, '_', '-')."""
+    """Namespaces are directory names: the frame id's rules (1-64 letters, digits, '_', '-'),
+    and no leading '-' (a directory named -rf is a trap for shell tools)."""
     try:
-        return validate_frame_id(namespace)
+        validate_frame_id(namespace)
     except ValueError:
         raise ValueError(
             f"invalid namespace {namespace!r}: use 1-64 letters, digits, '_' or '-'"
         ) from None
+    if namespace.startswith("-"):
+        raise ValueError(f"invalid namespace {namespace!r}: it starts with '-'")
+    return namespace
 
 
 class StoreOutcome(str, Enum):

@@ -14,7 +14,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
-from serving.client import LabelingClient
+from serving.client import LabelingClient, pb2
 from serving.config import ServerConfig
 from serving.metrics import ServiceMetrics
 from serving.request import FrameRequest, LabelOptions
@@ -61,6 +61,33 @@ def test_bearer_token_is_required_except_for_health(tmp_path, slot):
             assert status.status == health_pb2.HealthCheckResponse.SERVING
         with LabelingClient(running.target, token="s3cret") as client:
             assert client.label_kitti_frame(KITTI_SAMPLE, "000000").stored
+
+
+def test_the_bearer_scheme_is_case_insensitive_and_two_authorization_headers_are_refused(
+    tmp_path, slot
+):
+    config = ServerConfig(token="s3cret")
+    with running_server(slot, tmp_path / "store", config) as running:
+        with grpc.insecure_channel(running.target) as channel:
+            info = channel.unary_unary(
+                "/detmatch.v1.AutoLabeler/GetModelInfo",
+                request_serializer=lambda message: message.SerializeToString(),
+                response_deserializer=lambda data: data,
+            )
+            request = pb2.GetModelInfoRequest()
+            for scheme in ("bearer", "BEARER", "Bearer"):  # RFC 7235: any case
+                info(request, metadata=[("authorization", f"{scheme} s3cret")], timeout=10)
+            refused = [
+                [("authorization", "Bearer s3cret"), ("authorization", "Bearer wrong")],
+                [("authorization", "Bearer wrong"), ("authorization", "Bearer s3cret")],
+                [("authorization", "Bearer s3cret"), ("authorization", "Bearer s3cret")],
+                [("authorization", "Bearers3cret")],
+                [("authorization", "Basic s3cret")],
+            ]
+            for metadata in refused:
+                with pytest.raises(grpc.RpcError) as caught:
+                    info(request, metadata=metadata, timeout=10)
+                assert caught.value.code() == grpc.StatusCode.UNAUTHENTICATED, metadata
 
 
 @pytest.fixture

@@ -158,3 +158,42 @@ def test_long_ids_are_cut_in_errors():
 )
 def test_status_for(error, code):
     assert status_for(error)[0] == code
+
+
+def _png_header(width: int, height: int) -> bytes:
+    """A PNG signature and IHDR chunk declaring width x height (no pixel data follows)."""
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    return (b"\x89PNG\r\n\x1a\n" + struct.pack(">I", len(ihdr)) + chunk
+            + struct.pack(">I", zlib.crc32(chunk)))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "data, expected",
+    [
+        # Pillow's own words would be "cannot identify image file <_io.BytesIO object at 0x...>"
+        (_png_header(0, 1), "image: cannot decode PNG data (corrupt, truncated or a zero-sized"),
+        # and "DecompressionBombError: Image size (900000000 pixels) exceeds limit ..."
+        (_png_header(30000, 30000), "image: 30000 x 30000 pixels (900000000) exceeds the limit"),
+        (b"\xff\xd8\xff" + b"\x00" * 40, "image: cannot decode JPEG data"),
+    ],
+)
+def test_image_errors_are_ours_naming_the_field_and_limit(data, expected):
+    with pytest.raises(InvalidInput) as caught:
+        decode_image(data)
+    message = str(caught.value)
+    assert message.startswith(expected)
+    assert "object at 0x" not in message and "Error" not in message
+
+
+def test_a_namespace_cannot_start_with_a_dash():
+    from serving.store import validate_namespace
+
+    with pytest.raises(InvalidInput, match="namespace: '-rf' starts with '-'"):
+        decode_namespace("-rf")
+    with pytest.raises(ValueError, match="invalid namespace '-rf': it starts with '-'"):
+        validate_namespace("-rf")
+    assert decode_namespace("drive-2024") == "drive-2024" == validate_namespace("drive-2024")
