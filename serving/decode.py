@@ -97,8 +97,7 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> tup
     except Exception:  # noqa: BLE001 - any failure to decode client bytes is bad input
         # Pillow's text would name its own objects ("<_io.BytesIO object at 0x...>"): ours.
         raise InvalidInput(
-            f"image: cannot decode {kind.upper()} data (corrupt, truncated or a zero-sized "
-            "image)"
+            f"image: cannot decode {kind.upper()} data (corrupt, truncated or a zero-sized image)"
         ) from None
     if pixels.ndim != 3 or pixels.shape[0] < 1 or pixels.shape[1] < 1:
         raise InvalidInput(f"image: empty image of shape {pixels.shape}")
