@@ -86,14 +86,19 @@ def frame_selection(args: argparse.Namespace) -> FrameSelection:
     return FrameSelection(args.split, ids_file, args.all, args.subset)
 
 
+def _holds_files(out: Path) -> bool:
+    """Whether --out exists and is not empty; FileExistsError when it is not a directory."""
+    if not out.exists():
+        return False
+    if not out.is_dir():
+        raise FileExistsError(f"--out {out} exists and is not a directory")
+    return any(out.iterdir())
+
+
 def refuse_existing_run(out: Path, resume: bool) -> None:
     """A run directory that exists and is not empty is another run: training into it would
     append to its metrics.jsonl and overwrite its checkpoints. Only --resume may continue it."""
-    if resume or not out.exists():
-        return
-    if not out.is_dir():
-        raise FileExistsError(f"--out {out} exists and is not a directory")
-    if any(out.iterdir()):
+    if not resume and _holds_files(out):
         raise FileExistsError(
             f"--out {out} already holds a run (it is not empty): pass --resume to continue it, "
             "or choose a new run directory"
@@ -113,11 +118,7 @@ def prepare_output(out: Path, overwrite: bool, written: Sequence[str]) -> None:
     would mix old and new files (stale frames or result files that a later step reads as
     current). Refused unless `overwrite`; with it, the entries this command writes there
     (`written`, names relative to out) are removed first, and nothing else is touched."""
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise FileExistsError(f"--out {out} exists and is not a directory")
-    if not any(out.iterdir()):
+    if not _holds_files(out):
         return
     if not overwrite:
         raise FileExistsError(

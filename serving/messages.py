@@ -48,9 +48,7 @@ def frame_request(message: pb2.LabelFrameRequest) -> FrameRequest:
         tr_velo_to_cam=calibration.tr_velo_to_cam,
         namespace=message.namespace if message.HasField("namespace") else None,
         options=LabelOptions(
-            score_threshold_2d=_optional(options, "score_threshold_2d"),
-            score_threshold_3d=_optional(options, "score_threshold_3d"),
-            tau_hung=_optional(options, "tau_hung"),
+            **{name: _optional(options, name) for name in OVERRIDES},
             store=options.store if options.HasField("store") else True,
         ),
     )

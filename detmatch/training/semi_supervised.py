@@ -210,12 +210,13 @@ class SemiSupervisedTrainer(TeacherStudentTrainer):
             * (self.rule.weight_2d * _total(losses["pseudo_2d"]) + _total(losses["pseudo_3d"]))
         )
 
-        # 4. DetMatch: the 2D teacher's matched boxes pull the 3D student's projections.
+        # 4. DetMatch: the 2D teacher's matched boxes pull the 3D student's projections
+        # (matched with the rule's own tau_hung).
         consistency, pairs = torch.zeros(()), 0
         if self.rule.consistency:
             consistency, pairs = consistency_loss(
                 student_3d, unlabeled_3d, weak.samples, unlabeled.student_clouds,
-                [p.consistency_2d for p in pseudo], self.consistency, ssl.tau_hung,
+                [p.consistency_2d for p in pseudo], self.consistency, self.rule.policy.tau_hung,
             )  # fmt: skip
             loss = loss + consistency
 
