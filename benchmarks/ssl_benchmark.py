@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks import camera_init
 from benchmarks.harness import benchmark_parser, rerun
 from detmatch.checkpoints import list_checkpoints, run_evaluations
 from detmatch.config import (
@@ -55,6 +56,7 @@ from detmatch.config import (
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.kitti import read_image_set, write_image_set
 from detmatch.data.splits import dev_name, make_split, split_names
+from detmatch.data.synth.world import read_world
 from detmatch.eval.occlusion import LEVELS as OCCLUSION_LEVELS
 from detmatch.eval.occlusion import LevelCurve, object_levels
 from detmatch.eval.pseudo_labels import pooled_precision_recall_f1, pseudo_label_quality
@@ -515,6 +517,14 @@ def main() -> None:
     )
     parser.add_argument("--skip-val", action="store_true",
                         help="score dev only (tuning: val is scored once, at the end)")  # fmt: skip
+    parser.add_argument(
+        "--camera-data",
+        help="a separate synthetic set (another generator seed) whose every label pre-trains "
+        "the 2D detector that every method starts from: the stand-in for the paper's COCO start "
+        "(benchmarks/camera_init.py)",
+    )
+    parser.add_argument("--camera-run", help="the stand-in's run directory (default OUT/camera)")
+    parser.add_argument("--camera-steps", type=int, default=camera_init.DEFAULT_STEPS)
     args = parser.parse_args()
     methods = [m for m in args.methods.split(",") if m]
     unknown = [m for m in methods if m not in METHODS]
@@ -531,6 +541,16 @@ def main() -> None:
     stage = ssl_config(base, "control", args, out).train  # every method's steps and rates
     context = init_distributed(args.device)
     timings = {}
+    world = read_world(Path(args.data))
+    camera_run = Path(args.camera_run) if args.camera_run else out / "camera"
+    if args.camera_data:
+        camera_init.check_disjoint(Path(args.camera_data), Path(args.data))
+        started = time.perf_counter()
+        start_2d = camera_init.train_camera_init(
+            base, Path(args.camera_data), camera_run, context, args.camera_steps
+        )
+        timings["camera"] = time.perf_counter() - started
+        base = base.replace("train", init_2d=str(start_2d))
     if args.report_only:
         for method in [m for m in methods if not finished(out / m, stage.steps)]:
             print(f"{method}: run unfinished, left out of the report", file=sys.stderr)
@@ -568,7 +588,11 @@ def main() -> None:
     timings["report"] = time.perf_counter() - started
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
-    lines += [f"Labeled {labeled}, unlabeled {unlabeled}, dev {dev}; config {args.config}"]
+    lines += [f"World {world or 'not synthetic'} ({args.data}); labeled {labeled}, unlabeled "
+              f"{unlabeled}, dev {dev}; config {args.config}"]  # fmt: skip
+    if args.camera_data:
+        lines += [f"2D detector starts from {base.train.init_2d} (every label of "
+                  f"{args.camera_data}: the COCO stand-in)"]  # fmt: skip
     lines += [f"{' '.join(args.set)}; {stage.steps} teacher-student steps at rates "
               f"{stage.lr_2d:g} (2D) and {stage.lr_3d:g} (3D).", ""]  # fmt: skip
     for split in results:
@@ -617,6 +641,8 @@ def main() -> None:
     print(report)
     summary = {
         "seed": args.seed,
+        "world": world,
+        "init_2d": base.train.init_2d,
         "splits": {"labeled": labeled, "unlabeled": unlabeled, "dev": dev},
         "results": results,
         "learning_curve": curve,

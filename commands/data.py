@@ -7,6 +7,7 @@ from pathlib import Path
 
 from commands.common import add_overwrite_option, prepare_output
 from detmatch.data.kitti import SUBSETS
+from detmatch.data.synth.world import DEFAULT_WORLD, WORLDS
 
 # What `detmatch synth` writes into --out (removed first by --overwrite).
 SYNTH_OUTPUTS = ("training", "ImageSets", "synth.json")
@@ -24,8 +25,9 @@ def synth(args: argparse.Namespace) -> int:
         workers=args.workers,
         val_fraction=args.val_fraction,
         progress=not args.quiet,
+        world=args.world,
     )
-    print(f"wrote {args.frames} frames to {args.out}")
+    print(f"wrote {args.frames} frames of world {args.world} to {args.out}")
     return 0
 
 
@@ -80,6 +82,11 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     parser.add_argument("--resolution", choices=("full", "half"), default="half",
                         help="full = 1242x375 (KITTI), half = 621x188")  # fmt: skip
+    parser.add_argument(
+        "--world", choices=sorted(WORLDS), default=DEFAULT_WORLD,
+        help="world version: how the sensors fail (v2: KITTI's trade-off, people clearer to "
+        "the camera than to the LiDAR; docs/design.md section 6)",
+    )  # fmt: skip
     parser.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     parser.add_argument("--val-fraction", type=float, default=0.25,
                         help="fraction of frames in ImageSets/val.txt")  # fmt: skip

@@ -257,6 +257,10 @@ class TrainConfig:
     schedule_3d: str = "constant"
     onecycle_peak: float = 0.4
     onecycle_div: float = 10.0
+    # A checkpoint (or run directory: its latest) whose 2D detector starts this run instead of
+    # random weights, as the paper's camera starts from COCO; "" starts from scratch. Its
+    # [detector2d] and classes must be this config's. A resumed run loads its own weights.
+    init_2d: str = ""
 
     SECTION: ClassVar[str] = "train"
 

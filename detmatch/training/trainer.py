@@ -20,7 +20,12 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from detmatch.checkpoints import checkpoint_path, list_checkpoints, load_checkpoint
+from detmatch.checkpoints import (
+    checkpoint_path,
+    list_checkpoints,
+    load_checkpoint,
+    resolve_checkpoint,
+)
 from detmatch.config import ExperimentConfig, TrainConfig, config_to_dict
 from detmatch.data.dataset import Batch, FrameDataset, Sample, collate
 from detmatch.models.build import build_detectors
@@ -196,6 +201,23 @@ def labeled_training_frames(
     )  # fmt: skip
 
 
+def load_2d_start(model_2d: Detector2D, config: ExperimentConfig) -> None:
+    """Load [train] init_2d's 2D detector into model_2d; a ValueError naming the checkpoint
+    when its classes or [detector2d] differ from the config's."""
+    path = resolve_checkpoint(Path(config.train.init_2d))
+    checkpoint = load_checkpoint(path)
+    stored = checkpoint["config"]
+    if list(checkpoint["classes"]) != list(config.data.classes):
+        raise ValueError(
+            f"[train] init_2d {path}: classes {checkpoint['classes']} differ from "
+            f"{list(config.data.classes)}"
+        )
+    wanted = config_to_dict(config)["detector2d"]
+    if stored["detector2d"] != wanted:
+        raise ValueError(f"[train] init_2d {path}: its [detector2d] differs from this config's")
+    model_2d.load_state_dict(checkpoint["model_2d"])
+
+
 def leave_cores_for_workers(data_workers: int, context: DistributedContext) -> int:
     """On CPU, the number of torch threads this process keeps so that its data workers get a
     core each: the worker's loading and the step's OpenMP threads no longer fight over cores
@@ -223,6 +245,8 @@ class SupervisedTrainer:
         self.device = context.device
         self.autocast_dtype = autocast_dtype(config.train.precision, self.device)
         model_2d, model_3d = (model.to(self.device) for model in build_detectors(config))
+        if config.train.init_2d:
+            load_2d_start(model_2d, config)
         # The 2D detector's convolutions run ~1.3x faster on channels-last tensors (oneDNN).
         model_2d.to(memory_format=torch.channels_last)
         optimizer_2d, optimizer_3d = build_optimizers(config, model_2d, model_3d)

@@ -281,6 +281,30 @@ def test_overfits_a_few_frames(synth_root, tmp_path):
     assert found_2d >= 0.8 * total and found_3d >= 0.8 * total
 
 
+def test_init_2d_starts_the_camera_from_another_runs_weights(synth_root, tmp_path):
+    """[train] init_2d (the benchmark's COCO stand-in): the 2D detector starts from another
+    run's, the 3D detector from the seed's fresh weights; a different 2D design is refused."""
+    config = load_config(TINY).replace("data", root=str(synth_root))
+    SupervisedTrainer(config, tmp_path / "camera", init_distributed()).run()
+    camera = load_checkpoint(list_checkpoints(tmp_path / "camera")[-1])
+    fresh = SupervisedTrainer(config, tmp_path / "fresh", init_distributed()).state
+
+    started = SupervisedTrainer(
+        config.replace("train", init_2d=str(tmp_path / "camera")),
+        tmp_path / "started", init_distributed(),
+    ).state  # fmt: skip
+
+    assert_same_weights(started.model_2d.state_dict(), camera["model_2d"])
+    assert_same_weights(started.model_3d.state_dict(), fresh.model_3d.state_dict())
+    fresh_2d = fresh.model_2d.state_dict()
+    assert any(not torch.equal(fresh_2d[k], v) for k, v in camera["model_2d"].items())
+    other = config.replace("detector2d", head_width=24).replace(
+        "train", init_2d=str(tmp_path / "camera")
+    )
+    with pytest.raises(ValueError, match="init_2d .*step_00000006.pt: its \\[detector2d\\]"):
+        SupervisedTrainer(other, tmp_path / "refused", init_distributed())
+
+
 def test_3d_background_is_learned_only_inside_the_camera_view(synth_root):
     from detmatch.data.dataset import FrameDataset
     from detmatch.models.common import heatmap_focal_loss

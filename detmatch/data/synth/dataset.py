@@ -1,7 +1,7 @@
 """Writing a synthetic data set in KITTI layout, frames in parallel worker processes.
 
-Frame i of a data set depends only on (seed, i, resolution): the files are byte-identical
-whatever the number of workers.
+Frame i of a data set depends only on (seed, i, resolution, world): the files are
+byte-identical whatever the number of workers.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from detmatch.data.synth.lidar import lidar_sweep
 from detmatch.data.synth.scene import Scene
 from detmatch.data.synth.sensors import RESOLUTIONS, make_camera, make_lidar
 from detmatch.data.synth.textures import NoiseTiles
+from detmatch.data.synth.world import DEFAULT_WORLD, get_world
 from detmatch.files import atomic_write_bytes
 from detmatch.structures import Frame
 
@@ -43,25 +44,30 @@ def frame_id(index: int) -> str:
     return f"{index:06d}"
 
 
-def generate_frame(seed: int, index: int, resolution: str = "half") -> SynthFrame:
-    """Sample, render and label frame `index` of the data set made with `seed`."""
-    return render_scene(sample_scene(seed, index), frame_id(index), resolution)
+def generate_frame(
+    seed: int, index: int, resolution: str = "half", world: str = DEFAULT_WORLD
+) -> SynthFrame:
+    """Sample, render and label frame `index` of the data set made with `seed` in `world`."""
+    sensors = get_world(world)
+    return render_scene(sample_scene(seed, index, sensors), frame_id(index), resolution, world)
 
 
-def render_scene(scene: Scene, frame_name: str, resolution: str = "half") -> SynthFrame:
+def render_scene(
+    scene: Scene, frame_name: str, resolution: str = "half", world: str = DEFAULT_WORLD
+) -> SynthFrame:
     """Render the camera image and LiDAR sweep of a scene and label it."""
     camera = make_camera(resolution)
     noise = NoiseTiles(scene.texture_seed)
     render = render_camera(scene, camera, noise)
-    points = lidar_sweep(scene, make_lidar(), noise)
+    points = lidar_sweep(scene, make_lidar(), noise, get_world(world))
     labels = make_labels(scene, camera, render.visibility)
     frame = Frame(frame_name, render.image, points, camera.calib, labels)
     return SynthFrame(frame, scene, render.visibility)
 
 
-def _write_one(task: tuple[str, int, int, str]) -> int:
-    out_dir, seed, index, resolution = task
-    write_frame(out_dir, generate_frame(seed, index, resolution).frame)
+def _write_one(task: tuple[str, int, int, str, str]) -> int:
+    out_dir, seed, index, resolution, world = task
+    write_frame(out_dir, generate_frame(seed, index, resolution, world).frame)
     return index
 
 
@@ -111,17 +117,22 @@ def generate_dataset(
     workers: int = 1,
     val_fraction: float = 0.25,
     progress: bool = True,
+    world: str = DEFAULT_WORLD,
 ) -> None:
     """Write a synthetic paired camera + LiDAR data set in KITTI layout under out_dir:
     training/{image_2, velodyne, calib, label_2}, ImageSets/{train, val, trainval}.txt and
-    synth.json (generator version, seed, resolution, frame count).
+    synth.json (generator version, world version, seed, resolution, frame count).
 
-    resolution: "full" (1242x375) or "half" (621x188); workers: processes (1 = this one).
+    resolution: "full" (1242x375) or "half" (621x188); workers: processes (1 = this one);
+    world: a version of world.WORLDS (how the sensors fail).
     """
     _check_arguments(num_frames, seed, resolution, workers, val_fraction)
+    get_world(world)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    tasks = [(os.fspath(out_dir), int(seed), index, resolution) for index in range(num_frames)]
+    tasks = [
+        (os.fspath(out_dir), int(seed), index, resolution, world) for index in range(num_frames)
+    ]
     bar = tqdm(total=num_frames, desc="synth", unit="frame", disable=not progress)
     with bar:
         if workers == 1 or num_frames == 1:
@@ -143,6 +154,7 @@ def generate_dataset(
     record = {
         "generator": "detmatch.data.synth",
         "version": GENERATOR_VERSION,
+        "world": world,
         "seed": int(seed),
         "resolution": resolution,
         "image_size": [width, height],

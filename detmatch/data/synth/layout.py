@@ -21,6 +21,7 @@ from detmatch.data.synth.scene import (
     frame_rng,
 )
 from detmatch.data.synth.sensors import GROUND_Z
+from detmatch.data.synth.world import DEFAULT_WORLD, WORLDS, World
 from detmatch.geometry import paired_bev_intersection
 
 # The recording car around the LiDAR: nothing may stand there. (x, y, z, l, w, h, yaw)
@@ -244,14 +245,14 @@ def place_road_users(placer: Placer) -> None:
         )
 
 
-def place_clutter(placer: Placer) -> None:
+def place_clutter(placer: Placer, world: World) -> None:
     """Pedestrian-sized clutter on the sidewalks and verges, mostly in view ahead."""
     rng, road = placer.rng, placer.road
-    for _ in range(int(rng.integers(5, 14))):
-        kind = str(rng.choice(scenery.CLUTTER_KINDS))
+    for _ in range(int(rng.integers(*world.clutter_count))):
+        kind = str(rng.choice(world.clutter_kinds))
         side = int(rng.choice([-1, 1]))
         edge, outer = _edges(road, side)
-        if rng.random() < 0.6:
+        if rng.random() < world.clutter_at_curb:
             u = edge + side * (CURB + rng.uniform(0.3, 0.7))
         else:
             u = outer + side * rng.uniform(-0.6, 1.2)
@@ -328,10 +329,11 @@ def place_background(placer: Placer) -> None:
                 s += rng.uniform(3.0, 10.0)
 
 
-def sample_scene(seed: int, frame_index: int) -> Scene:
-    """The scene of frame `frame_index` of the data set made with `seed`, without rendering.
+def sample_scene(seed: int, frame_index: int, world: World = WORLDS[DEFAULT_WORLD]) -> Scene:
+    """The scene of frame `frame_index` of the data set made with `seed` in `world`, without
+    rendering.
 
-    Depends on (seed, frame_index) only (see scene.frame_rng).
+    Depends on (seed, frame_index, world) only (see scene.frame_rng).
     """
     rng = frame_rng(seed, frame_index)
     road = sample_road(rng)
@@ -339,6 +341,6 @@ def sample_scene(seed: int, frame_index: int) -> Scene:
     placer = Placer(rng, road)
     place_parked_rows(placer)
     place_road_users(placer)
-    place_clutter(placer)
+    place_clutter(placer, world)
     place_background(placer)
     return placer.scene(lighting, int(rng.integers(2**31)))

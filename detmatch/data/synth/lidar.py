@@ -21,6 +21,7 @@ from detmatch.data.synth.primitives import (
 from detmatch.data.synth.scene import Scene
 from detmatch.data.synth.sensors import GROUND_Z, LidarModel
 from detmatch.data.synth.textures import NoiseTiles, road_surface
+from detmatch.data.synth.world import DEFAULT_WORLD, WORLDS, World
 
 BEAM_DIVERGENCE = 0.002  # radians: a return's footprint is range x this
 ANGLE_MARGIN = 0.004  # radians added around each window
@@ -59,8 +60,11 @@ def lidar_windows(lidar: LidarModel, prims: Primitives) -> np.ndarray:
     return np.stack([row0, row1, col0, col1], axis=1)
 
 
-def lidar_sweep(scene: Scene, lidar: LidarModel, noise: NoiseTiles) -> np.ndarray:
-    """Ray cast one sweep. Returns (N, 4) float32 x, y, z, intensity in the LiDAR frame."""
+def lidar_sweep(
+    scene: Scene, lidar: LidarModel, noise: NoiseTiles, world: World = WORLDS[DEFAULT_WORLD]
+) -> np.ndarray:
+    """Ray cast one sweep. Returns (N, 4) float32 x, y, z, intensity in the LiDAR frame; the
+    world's per-material reflectivity overrides and extra dropout apply."""
     prims = scene.primitives
     rng = np.random.default_rng([scene.texture_seed, 2])
     dirs = lidar.directions()
@@ -83,6 +87,10 @@ def lidar_sweep(scene: Scene, lidar: LidarModel, noise: NoiseTiles) -> np.ndarra
     material = prims.material[prim_object[rays]]
     region = mat.surface_regions(material, unit_point, prims.half_size[prim_object[rays]])
     reflectivity[rays], dropout[rays] = mat.reflectivity_and_dropout(material, region)
+    for material_id, value in world.lidar_reflectivity.items():
+        reflectivity[rays[(material == material_id) & (region == mat.BASE)]] = value
+    for material_id, extra in world.lidar_dropout.items():
+        dropout[rays[material == material_id]] += extra
     incidence[rays] = np.abs(np.einsum("ki,ki->k", normal, dirs[rays]))
 
     rays = np.flatnonzero(returned & ~on_object)

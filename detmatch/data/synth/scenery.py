@@ -2,7 +2,10 @@
 
 Clutter is the camera-easy, LiDAR-hard failure mode: posts, bollards, cabinets, bins, sign
 posts and tree trunks of a person's width (0.3-0.8 m) and height (1.2-2.2 m), reflecting like
-clothing, but grey, brown or green and without head, skin or clothing in the image.
+clothing, but grey, brown or green and without head, skin or clothing in the image. World v2
+adds things whose point signature is a person's or a cyclist's: pay stations (a narrow
+pedestal, a wider body, a rounded top: legs, torso and head to a 64-beam sensor), shrubs of a
+person's size, and parked bicycles without riders, one to three side by side.
 """
 
 from __future__ import annotations
@@ -11,9 +14,10 @@ import numpy as np
 
 from detmatch.data.synth import materials as mat
 from detmatch.data.synth.primitives import Primitives
-from detmatch.data.synth.shapes import ShapeBuilder
+from detmatch.data.synth.shapes import ShapeBuilder, build_bicycle
+from detmatch.data.synth.world import WORLDS
 
-CLUTTER_KINDS = ("post", "bollard", "cabinet", "bin", "sign", "trunk")
+CLUTTER_KINDS = tuple(dict.fromkeys(k for w in WORLDS.values() for k in w.clutter_kinds))
 GREYS = np.array([[0.55, 0.55, 0.53], [0.42, 0.43, 0.42], [0.66, 0.65, 0.62], [0.30, 0.31, 0.31]])
 DULL_COLOURS = np.array(
     [
@@ -84,9 +88,39 @@ def build_clutter(rng: np.random.Generator, kind: str, owner: int) -> Primitives
         )
     elif kind == "trunk":
         builder.post((0.0, 0.0), rng.uniform(0.15, 0.3), height, mat.BARK, _pick(rng, BARK_COLOURS))
+    elif kind == "pay_station":
+        _pay_station(builder, rng)
+    elif kind == "shrub":
+        leaves = _pick(rng, FOLIAGE_COLOURS, 0.15)
+        radii = np.array([rng.uniform(0.28, 0.42), rng.uniform(0.25, 0.4), 0.0])
+        radii[2] = rng.uniform(0.6, 0.95)
+        builder.ellipsoid((0.0, 0.0, radii[2]), radii, mat.FOLIAGE, leaves)
+        top = radii * rng.uniform(0.45, 0.6)
+        builder.ellipsoid((0.0, 0.0, 2 * radii[2] - top[2] * 0.6), top, mat.FOLIAGE, leaves * 0.9)
+    elif kind == "bicycles":
+        length, width = rng.uniform(1.6, 1.85), rng.uniform(0.5, 0.65)
+        count = int(rng.integers(1, 4))
+        spacing = rng.uniform(0.55, 0.8)
+        for i in range(count):
+            build_bicycle(builder, rng, length, width, (i - (count - 1) / 2) * spacing)
     else:
         raise ValueError(f"unknown clutter kind {kind!r}; expected one of {CLUTTER_KINDS}")
     return builder.build(owner)
+
+
+def _pay_station(builder: ShapeBuilder, rng: np.random.Generator) -> None:
+    """A ticket machine: pedestal, body and a rounded top, 1.5-1.85 m tall."""
+    body_colour = _pick(rng, np.concatenate([GREYS, DULL_COLOURS]))
+    pedestal = rng.uniform(0.75, 0.95)
+    body_top = pedestal + rng.uniform(0.5, 0.65)
+    half_width, half_depth = rng.uniform(0.2, 0.3), rng.uniform(0.12, 0.18)
+    builder.post((0.0, 0.0), rng.uniform(0.1, 0.16), pedestal, mat.METAL, _pick(rng, GREYS))
+    builder.box(
+        (-half_depth, -half_width, pedestal), (half_depth, half_width, body_top),
+        mat.PLASTIC, body_colour,
+    )  # fmt: skip
+    cap = np.array([rng.uniform(0.09, 0.13), rng.uniform(0.09, 0.13), rng.uniform(0.1, 0.14)])
+    builder.ellipsoid((0.0, 0.0, body_top + cap[2]), cap, mat.PLASTIC, body_colour * 0.8)
 
 
 def build_building(

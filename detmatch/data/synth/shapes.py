@@ -7,6 +7,8 @@ box the caller sampled up to small differences, and every primitive lies inside 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from detmatch.data.synth import materials as mat
@@ -311,6 +313,63 @@ def build_pedestrian(
     return builder.build(owner)
 
 
+@dataclass(frozen=True)
+class Bicycle:
+    """Where a built bicycle's parts are (object frame): a rider's hips sit above the seat,
+    hands on the bar's grips at +-grip_y, feet on the pedals around the crank."""
+
+    crank: tuple[float, float, float]
+    seat: tuple[float, float, float]
+    bar: tuple[float, float, float]
+    grip_y: float
+
+
+def build_bicycle(
+    builder: ShapeBuilder, rng: np.random.Generator, length: float, width: float, y: float = 0.0
+) -> Bicycle:
+    """Two wheels, frame, handlebar and maybe a rear rack with panniers, centred at (0, y)."""
+    frame_colour = np.clip(SHIRT_COLOURS[rng.integers(len(SHIRT_COLOURS))] * 0.6, 0, 1)
+    tyre = np.array([0.06, 0.06, 0.06])
+    radius = np.clip(length / 5.2, 0.28, 0.36)
+    rear, front = -length / 2 + radius, length / 2 - radius
+    for wx in (rear, front):
+        builder.wheel((wx, y, radius), radius, 0.025, mat.TYRE, tyre)
+    crank = (rear + 0.42 * (front - rear), y, radius * 0.95)
+    seat = (rear + 0.25 * (front - rear), y, radius + 0.55)
+    bar = (front - 0.12, y, radius + 0.68)
+    for a, b in (
+        ((rear, y, radius), crank),
+        ((rear, y, radius), seat),
+        (seat, crank),
+        (crank, bar),
+        (seat, bar),
+        (bar, (front, y, radius)),
+    ):
+        builder.segment(a, b, 0.022, 0.022, mat.BIKE, frame_colour)
+    grip_y = max(width / 2 - 0.05, 0.2)
+    if rng.random() < 0.6:  # rear rack with panniers
+        bag = np.clip(TROUSER_COLOURS[rng.integers(len(TROUSER_COLOURS))] * 0.8, 0, 1)
+        rack_z = 2 * radius + 0.04
+        builder.box(
+            (rear - 0.2, y - 0.08, rack_z - 0.03),
+            (rear + 0.2, y + 0.08, rack_z),
+            mat.BIKE,
+            frame_colour,
+        )
+        for side in (-1.0, 1.0):
+            inner, outer = side * 0.08, side * min(grip_y - 0.02, 0.24)
+            builder.box(
+                (rear - 0.22, y + min(inner, outer), rack_z - 0.38),
+                (rear + 0.16, y + max(inner, outer), rack_z),
+                mat.CLOTH,
+                bag,
+            )
+    builder.segment(
+        (bar[0], y - grip_y, bar[2]), (bar[0], y + grip_y, bar[2]), 0.018, 0.018, mat.BIKE, tyre
+    )
+    return Bicycle(crank, seat, bar, grip_y)
+
+
 def build_cyclist(
     rng: np.random.Generator, length: float, width: float, height: float, owner: int
 ) -> Primitives:
@@ -319,42 +378,8 @@ def build_cyclist(
     skin, hair, shirt, trousers = _person_colours(rng)
     if rng.random() < 0.5:
         hair = np.clip(SHIRT_COLOURS[rng.integers(len(SHIRT_COLOURS))], 0, 1)  # a helmet
-    frame_colour = np.clip(SHIRT_COLOURS[rng.integers(len(SHIRT_COLOURS))] * 0.6, 0, 1)
-    tyre = np.array([0.06, 0.06, 0.06])
-    radius = np.clip(length / 5.2, 0.28, 0.36)
-    rear, front = -length / 2 + radius, length / 2 - radius
-    for wx in (rear, front):
-        builder.wheel((wx, 0.0, radius), radius, 0.025, mat.TYRE, tyre)
-    crank = (rear + 0.42 * (front - rear), 0.0, radius * 0.95)
-    seat = (rear + 0.25 * (front - rear), 0.0, radius + 0.55)
-    bar = (front - 0.12, 0.0, radius + 0.68)
-    for a, b in (
-        ((rear, 0, radius), crank),
-        ((rear, 0, radius), seat),
-        (seat, crank),
-        (crank, bar),
-        (seat, bar),
-        (bar, (front, 0, radius)),
-    ):
-        builder.segment(a, b, 0.022, 0.022, mat.BIKE, frame_colour)
-    grip_y = max(width / 2 - 0.05, 0.2)
-    if rng.random() < 0.6:  # rear rack with panniers
-        bag = np.clip(TROUSER_COLOURS[rng.integers(len(TROUSER_COLOURS))] * 0.8, 0, 1)
-        rack_z = 2 * radius + 0.04
-        builder.box(
-            (rear - 0.2, -0.08, rack_z - 0.03), (rear + 0.2, 0.08, rack_z), mat.BIKE, frame_colour
-        )
-        for side in (-1.0, 1.0):
-            inner, outer = side * 0.08, side * min(grip_y - 0.02, 0.24)
-            builder.box(
-                (rear - 0.22, min(inner, outer), rack_z - 0.38),
-                (rear + 0.16, max(inner, outer), rack_z),
-                mat.CLOTH,
-                bag,
-            )
-    builder.segment(
-        (bar[0], -grip_y, bar[2]), (bar[0], grip_y, bar[2]), 0.018, 0.018, mat.BIKE, tyre
-    )
+    bike = build_bicycle(builder, rng, length, width)
+    crank, seat, bar, grip_y = bike.crank, bike.seat, bike.bar, bike.grip_y
     scale = height / 1.74
     head_radii = np.array([0.1, 0.085, 0.12]) * scale
     head = (bar[0] - 0.2, 0.0, height - head_radii[2])

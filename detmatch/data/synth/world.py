@@ -1,0 +1,68 @@
+"""World versions: the knobs that decide how the two sensors fail, selectable and recorded.
+
+A data set's synth.json names its world; a benchmark reads it back and reports it. "v1" is
+the world every result before 2026-12-07 was measured on, and stays bit-identical. "v2"
+gives the sensors KITTI's trade-off (docs/design.md section 6; BENCHMARKS.md, issue 41): in
+the point cloud, people-shaped roadside things (pay stations, shrubs, parked bicycles without
+riders) stand where people stand, sign faces no longer reflect like retroreflectors, and
+people's dark clothing loses more returns; in the image all of them lack a person's skin,
+hair and clothing colours.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+
+from detmatch.data.synth import materials as mat
+
+V1_CLUTTER = ("post", "bollard", "cabinet", "bin", "sign", "trunk")
+
+
+@dataclass(frozen=True)
+class World:
+    """name: the version written into synth.json.
+    clutter_kinds: what clutter is drawn from (uniformly); clutter_count: [low, high) per
+    scene; clutter_at_curb: the share of clutter standing at the curb (the rest is set back
+    on the sidewalk, where people walk).
+    lidar_reflectivity / lidar_dropout: per material, overrides of materials.py's base
+    reflectivity and additions to its extra dropout."""
+
+    name: str
+    clutter_kinds: tuple[str, ...] = V1_CLUTTER
+    clutter_count: tuple[int, int] = (5, 14)
+    clutter_at_curb: float = 0.6
+    lidar_reflectivity: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    lidar_dropout: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+
+
+WORLDS = {
+    "v1": World("v1"),
+    "v2": World(
+        "v2",
+        clutter_kinds=V1_CLUTTER + ("pay_station", "shrub", "bicycles"),
+        clutter_count=(10, 22),
+        clutter_at_curb=0.4,
+        lidar_reflectivity=MappingProxyType({mat.SIGN: 0.35}),
+        lidar_dropout=MappingProxyType({mat.CLOTH: 0.12, mat.ARM: 0.12, mat.HEAD: 0.12}),
+    ),
+}
+DEFAULT_WORLD = "v1"
+
+
+def get_world(name: str) -> World:
+    """The world of a version name; a clear error naming the versions there are."""
+    if name not in WORLDS:
+        raise ValueError(f"unknown world {name!r}; choose from {sorted(WORLDS)}")
+    return WORLDS[name]
+
+
+def read_world(root: Path) -> str:
+    """The world version of a data set: its synth.json's "world" ("v1" for sets written
+    before versions were recorded); "" for a data set that synth did not write (KITTI)."""
+    record = Path(root) / "synth.json"
+    if not record.is_file():
+        return ""
+    return str(json.loads(record.read_text()).get("world", "v1"))
