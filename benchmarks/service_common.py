@@ -41,6 +41,7 @@ def prepare_repository(work: Path, config: str = "configs/tiny.toml") -> Path:
     repository = work / f"repository_{Path(config).stem}"
     if (repository / "000001" / "PROMOTED").is_file():
         return repository
+    work.mkdir(parents=True, exist_ok=True)  # --work may name a folder not made yet
     import torch
 
     from detmatch.config import config_to_dict, load_config

@@ -38,11 +38,19 @@ LABEL_FRAME = "/detmatch.v1.AutoLabeler/LabelFrame"
 
 
 class StalledStream:
-    """One HTTP/2 connection holding one gRPC call that sent its headers and `sent` bytes of
-    a message announced as `declared` bytes long, then stops (no END_STREAM)."""
+    """One HTTP/2 connection holding `streams` gRPC calls that each sent their headers (with
+    `headers` added: an authorization header, say) and `sent` bytes of a message announced as
+    `declared` bytes long, then stop (no END_STREAM). `stream_id` is the first call's."""
 
     def __init__(
-        self, target: str, path: str = LABEL_FRAME, declared: int = 1_000_000, sent: int = 100
+        self,
+        target: str,
+        path: str = LABEL_FRAME,
+        declared: int = 1_000_000,
+        sent: int = 100,
+        *,
+        streams: int = 1,
+        headers: list[tuple[str | bytes, str | bytes]] = (),
     ) -> None:
         import h2.config
         import h2.connection
@@ -50,18 +58,51 @@ class StalledStream:
         host, port = target.rsplit(":", 1)
         self.sock = socket.create_connection((host, int(port)), timeout=30)
         self.connection = h2.connection.H2Connection(
-            h2.config.H2Configuration(client_side=True, header_encoding="utf-8")
+            h2.config.H2Configuration(client_side=True, header_encoding=None)
         )
         self.connection.initiate_connection()
-        self.stream_id = self.connection.get_next_available_stream_id()
-        headers = [(":method", "POST"), (":scheme", "http"), (":path", path),
-                   (":authority", target), ("content-type", "application/grpc"),
-                   ("te", "trailers")]  # fmt: skip
-        self.connection.send_headers(self.stream_id, headers)
-        if sent:
-            prefix = b"\0" + declared.to_bytes(4, "big")
-            self.connection.send_data(self.stream_id, (prefix + b"\0" * sent)[: 5 + sent])
+        self.stream_ids = []
+        for _ in range(streams):
+            stream_id = self.connection.get_next_available_stream_id()
+            request = [(b":method", b"POST"), (b":scheme", b"http"), (b":path", path.encode()),
+                       (b":authority", target.encode()), (b"content-type", b"application/grpc"),
+                       (b"te", b"trailers")]  # fmt: skip
+            request += [(_bytes(k), _bytes(v)) for k, v in headers]
+            self.connection.send_headers(stream_id, request)
+            if sent:
+                prefix = b"\0" + declared.to_bytes(4, "big")
+                self.connection.send_data(stream_id, (prefix + b"\0" * sent)[: 5 + sent])
+            self.stream_ids.append(stream_id)
+        self.stream_id = self.stream_ids[0]
         self.sock.sendall(self.connection.data_to_send())
+
+    def statuses(self, timeout_s: float) -> dict[int, str | None]:
+        """Each stream's ending (see `status`) as the server sends them, within timeout_s."""
+        import h2.events
+
+        found: dict[int, str | None] = {i: None for i in self.stream_ids}
+        deadline = time.monotonic() + timeout_s
+        while None in found.values() and time.monotonic() < deadline:
+            self.sock.settimeout(max(deadline - time.monotonic(), 0.01))
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                break
+            if not data:
+                return {i: v or "closed" for i, v in found.items()}
+            for event in self.connection.receive_data(data):
+                stream = getattr(event, "stream_id", None)
+                if stream not in found:
+                    continue
+                if isinstance(event, h2.events.StreamReset) and found[stream] is None:
+                    found[stream] = "reset"  # after trailers, it only ends the upload
+                headers = dict(getattr(event, "headers", None) or ())
+                if b"grpc-status" in headers:
+                    found[stream] = headers[b"grpc-status"].decode()
+            pending = self.connection.data_to_send()
+            if pending:
+                self.sock.sendall(pending)
+        return found
 
     def status(self, timeout_s: float) -> str | None:
         """Wait for the server to end the call: its grpc-status ('4': DEADLINE_EXCEEDED), or
@@ -83,8 +124,8 @@ class StalledStream:
                 headers = getattr(event, "headers", None)
                 if headers and event.stream_id == self.stream_id:
                     found = dict(headers)
-                    if "grpc-status" in found:
-                        return found["grpc-status"]
+                    if b"grpc-status" in found:
+                        return found[b"grpc-status"].decode()
             pending = self.connection.data_to_send()  # settings and ping acknowledgements
             if pending:
                 self.sock.sendall(pending)
@@ -92,6 +133,10 @@ class StalledStream:
 
     def close(self) -> None:
         self.sock.close()
+
+
+def _bytes(value: str | bytes) -> bytes:
+    return value.encode() if isinstance(value, str) else value
 
 
 class IdleConnection:

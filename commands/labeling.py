@@ -102,7 +102,11 @@ def serve(args: argparse.Namespace) -> int:
         threads=args.threads,
         max_message_bytes=args.max_message_mb * 1024 * 1024,
         max_image_pixels=args.max_image_pixels,
+        max_points=args.max_points,
         max_concurrent_rpcs=args.max_concurrent_rpcs,
+        max_inflight_bytes=args.max_inflight_mb * 1024 * 1024,
+        budget_wait_s=args.budget_wait_s,
+        max_uploads_per_peer=args.max_uploads_per_peer,
         receive_timeout_s=args.receive_timeout_s,
         tls_cert=Path(args.tls_cert) if args.tls_cert else None,
         tls_key=Path(args.tls_key) if args.tls_key else None,
@@ -209,12 +213,25 @@ def _add_serve_parser(commands: argparse._SubParsersAction) -> None:
                         "use (its CPU set and its cgroup's CPU quota)")  # fmt: skip
     parser.add_argument("--shard", default=socket.gethostname().split(".")[0] or "default",
                         help="this replica's label store shard (default: host name)")  # fmt: skip
-    parser.add_argument("--max-message-mb", type=int, default=64, help="largest request, MiB")
+    parser.add_argument("--max-message-mb", type=int, default=48,
+                        help="largest request, MiB (refused as its first bytes arrive; the "
+                        "default holds --max-points points and a 4K image)")  # fmt: skip
     parser.add_argument("--max-image-pixels", type=int, default=3840 * 2160,
                         help="largest image (width x height), checked before decoding")  # fmt: skip
+    parser.add_argument("--max-points", type=int, default=2_000_000,
+                        help="LiDAR points per frame; INVALID_ARGUMENT beyond")  # fmt: skip
     parser.add_argument("--max-concurrent-rpcs", type=int, default=64,
-                        help="labeling calls at once; RESOURCE_EXHAUSTED beyond (health and "
-                        "reflection always answer)")  # fmt: skip
+                        help="LabelFrame calls at once, counted once their message has arrived; "
+                        "RESOURCE_EXHAUSTED beyond (GetModelInfo, health and reflection "
+                        "always answer)")  # fmt: skip
+    parser.add_argument("--max-inflight-mb", type=int, default=512,
+                        help="memory budget of the frames being labeled (3x their messages); a "
+                        "call that does not fit waits --budget-wait-s, then gets "
+                        "RESOURCE_EXHAUSTED")  # fmt: skip
+    parser.add_argument("--budget-wait-s", type=float, default=5.0,
+                        help="how long a call may wait for room in the budget")  # fmt: skip
+    parser.add_argument("--max-uploads-per-peer", type=int, default=16,
+                        help="LabelFrame requests one connection may have uploading")  # fmt: skip
     parser.add_argument("--receive-timeout-s", type=float, default=30.0,
                         help="a request message must arrive within this; slower clients get "
                         "DEADLINE_EXCEEDED")  # fmt: skip

@@ -8,12 +8,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from serving.decode import DEFAULT_MAX_IMAGE_PIXELS
-from serving.edge import EdgeSettings
+from serving.decode import DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_POINTS
+from serving.edge import DEFAULT_INFLIGHT_BYTES, EdgeSettings
 from serving.sessions import SessionSettings
 
-# A full KITTI frame is about 3 MB (1.9 MB of points, 1 MB of PNG); 64 MiB fits it 20 times.
-DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+# A full KITTI frame is about 3 MB (1.9 MB of points, 1 MB of PNG). 48 MiB holds the largest
+# frame the other limits admit (2,000,000 points, 32 MB, and a 4K image) and no more: gRPC reads
+# every message under this cap into memory before the server can refuse it, so this cap, not
+# the byte budget, bounds what uploads in progress hold (BENCHMARKS.md, "Heavy and stalled
+# clients"); a message over it is refused as its first bytes arrive.
+DEFAULT_MAX_MESSAGE_BYTES = 48 * 1024 * 1024
 
 
 @dataclass(frozen=True)
@@ -24,7 +28,14 @@ class ServerConfig:
     threads: int = 0  # onnxruntime intra-op threads per run; 0: the CPUs this process may use
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS  # checked on the header, before decoding
-    max_concurrent_rpcs: int = 64  # labeling calls at once; RESOURCE_EXHAUSTED beyond
+    max_points: int = DEFAULT_MAX_POINTS  # LiDAR points per frame; INVALID_ARGUMENT beyond
+    max_concurrent_rpcs: int = 64  # labeling calls at once, counted once their message arrived
+    # Bytes the labeling calls in flight may hold (3x their messages: edge.MESSAGE_COST); a
+    # call that does not fit waits budget_wait_s, then gets RESOURCE_EXHAUSTED.
+    max_inflight_bytes: int = DEFAULT_INFLIGHT_BYTES
+    budget_wait_s: float = 5.0
+    max_uploads_per_peer: int = 16  # labeling requests one connection may have uploading
+    max_streams_per_connection: int = 32  # HTTP/2 SETTINGS_MAX_CONCURRENT_STREAMS
     receive_timeout_s: float = 30.0  # a request message must arrive within this
     keepalive_s: float = 60.0  # ping an idle connection this often ...
     keepalive_timeout_s: float = 20.0  # ... and drop it when the ping is not answered
@@ -41,7 +52,8 @@ class ServerConfig:
     grace_s: float = 30.0  # how long in-flight calls may run after SIGTERM
 
     def __post_init__(self) -> None:
-        for name in ("workers", "store_threads", "max_message_bytes", "max_concurrent_rpcs"):
+        for name in ("workers", "store_threads", "max_message_bytes", "max_concurrent_rpcs",
+                     "max_points", "max_streams_per_connection"):  # fmt: skip
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.threads < 0:
@@ -54,7 +66,11 @@ class ServerConfig:
             raise ValueError("TLS needs both a certificate and a key")
 
     def edge(self) -> EdgeSettings:
-        return EdgeSettings(self.token, self.max_concurrent_rpcs, self.receive_timeout_s)
+        return EdgeSettings(
+            self.token, self.max_concurrent_rpcs, self.receive_timeout_s,
+            max_inflight_bytes=self.max_inflight_bytes, budget_wait_s=self.budget_wait_s,
+            max_uploads_per_peer=self.max_uploads_per_peer,
+        )  # fmt: skip
 
     def channel_options(self) -> list[tuple[str, int]]:
         def ms(seconds: float) -> int:
@@ -65,6 +81,7 @@ class ServerConfig:
             ("grpc.max_send_message_length", self.max_message_bytes),
             # A second server on a busy port must fail to bind, not share it silently.
             ("grpc.so_reuseport", 0),
+            ("grpc.max_concurrent_streams", self.max_streams_per_connection),
             ("grpc.keepalive_time_ms", ms(self.keepalive_s)),
             ("grpc.keepalive_timeout_ms", ms(self.keepalive_timeout_s)),
             ("grpc.keepalive_permit_without_calls", 1),

@@ -26,6 +26,8 @@ JPEG_MAGIC = b"\xff\xd8\xff"
 # Decompression-bomb guard, checked on the header before any pixel is decoded: 4K UHD
 # (3840 x 2160), 18x a KITTI frame (1242 x 375) and 3.4x a Waymo front camera (1920 x 1280).
 DEFAULT_MAX_IMAGE_PIXELS = 3840 * 2160
+# LiDAR points per frame: 17x a 64-beam sweep (KITTI's HDL-64E: about 120,000), 32 MB of wire.
+DEFAULT_MAX_POINTS = 2_000_000
 CALIBRATION_SIZES = {"p2": 12, "r0_rect": 9, "tr_velo_to_cam": 12}
 # No real calibration holds a value this large (KITTI's largest is P2's focal length, ~721).
 MAX_CALIBRATION_VALUE = 1e6
@@ -112,13 +114,18 @@ def _check_pixels(width: int, height: int, max_pixels: int) -> None:
         )
 
 
-def decode_points(data: bytes) -> np.ndarray:
-    """Little-endian float32 bytes, N x 4 -> (N, 4) float32, every value finite."""
+def decode_points(data: bytes, max_points: int = DEFAULT_MAX_POINTS) -> np.ndarray:
+    """Little-endian float32 bytes, N x 4 -> (N, 4) float32, every value finite, N at most
+    max_points."""
     if not data:
         raise InvalidInput("points: empty point cloud; send N x 4 little-endian float32")
     if len(data) % 16:
         raise InvalidInput(
             f"points: {len(data)} bytes is not a multiple of 16 (N x 4 float32 values)"
+        )
+    if len(data) // 16 > max_points:
+        raise InvalidInput(
+            f"points: {len(data) // 16} points exceeds the limit of {max_points} points per frame"
         )
     points = np.frombuffer(data, dtype="<f4").reshape(-1, 4).astype(np.float32)
     finite = np.isfinite(points).all(axis=1)

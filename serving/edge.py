@@ -4,14 +4,22 @@ For each call it
 - counts it (requests, errors, latency, in flight; `serving.metrics`) with the status code the
   client got, rejected calls included;
 - checks the bearer token before reading anything (health is exempt);
-- admits at most `max_concurrent_rpcs` calls of the labeling service at once and answers
-  RESOURCE_EXHAUSTED beyond (health and reflection are exempt, so they always answer);
 - receives the request message itself, with a time limit (a client that sends headers and
   part of a message, then nothing, is dropped with DEADLINE_EXCEEDED after
-  `receive_timeout_s`; it never holds a thread, the server being asyncio);
+  `receive_timeout_s`; it never holds a thread, the server being asyncio); one connection
+  (peer) may have at most `max_uploads_per_peer` labeling requests still uploading;
+- admits a labeling call (LabelFrame: the limited methods) only once its whole message has
+  arrived, so a stream still uploading holds no slot: at most `max_concurrent_rpcs` at once,
+  and the bytes they hold (ByteBudget: the message x MESSAGE_COST, for its parsed copy and
+  decoded arrays) within `max_inflight_bytes`; a call that does not fit waits up to
+  `budget_wait_s`, then gets RESOURCE_EXHAUSTED naming the limit. GetModelInfo, health and
+  reflection are never refused because of labeling load;
 - parses it itself: bytes that are not the method's message are INVALID_ARGUMENT (gRPC's own
-  deserialisation would answer INTERNAL and log a traceback), logged as one WARNING line a
-  few seconds at most.
+  deserialisation would answer INTERNAL and log a traceback);
+- logs what clients get wrong (bad token, bad bytes, too slow, cancelled, over a limit) as one
+  WARNING line per kind every `warning_interval_s` at most, no traceback, with the count of
+  lines left out, and counts each kind (`detmatch_client_errors_total`); server faults stay
+  ERROR with their traceback.
 
 Unary-request handlers are served as stream-request handlers to do this: on the wire a unary
 call is a stream of one message, and the handler then starts at the call's start rather than
@@ -56,32 +64,88 @@ def call_fields() -> dict[str, Any]:
         return {}
 
 
+# What a labeling call holds per byte of its request message while it runs: the message, the
+# parsed protobuf's copy of its image and point bytes, and the decoded arrays (measured on
+# 62 MB frames: BENCHMARKS.md, "Heavy and stalled clients").
+MESSAGE_COST = 3
+DEFAULT_INFLIGHT_BYTES = 512 * 1024 * 1024
+
+
 @dataclass(frozen=True)
 class EdgeSettings:
     token: str | None = None  # None: no authentication
     max_concurrent_rpcs: int = 64
     receive_timeout_s: float = 30.0
     warning_interval_s: float = 10.0
+    max_inflight_bytes: int = DEFAULT_INFLIGHT_BYTES
+    budget_wait_s: float = 5.0
+    max_uploads_per_peer: int = 16
 
     def __post_init__(self) -> None:
         if self.token is not None and not self.token:
             raise ValueError("token: empty; give a token or None (authentication off)")
-        if self.max_concurrent_rpcs < 1:
-            raise ValueError(f"max_concurrent_rpcs must be >= 1, got {self.max_concurrent_rpcs}")
+        for name in ("max_concurrent_rpcs", "max_inflight_bytes", "max_uploads_per_peer"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.receive_timeout_s > 0:
             raise ValueError(f"receive_timeout_s must be > 0, got {self.receive_timeout_s}")
+        if not self.budget_wait_s >= 0:
+            raise ValueError(f"budget_wait_s must be >= 0, got {self.budget_wait_s}")
+
+
+class ByteBudget:
+    """Bytes that admitted calls hold, within `limit`, on one event loop. A reservation that
+    does not fit waits (in arrival order) up to wait_s; the bytes waiting are bounded by the
+    limit too, since a waiting call holds its message already."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.used = 0
+        self.waiting = 0
+        self._freed = asyncio.Condition()
+
+    async def reserve(self, size: int, wait_s: float) -> bool:
+        """True once `size` bytes are reserved (release them with `release`); False when they
+        cannot be within wait_s (or never: a size over the limit)."""
+        if size > self.limit:
+            return False
+        if self.used + size <= self.limit and not self.waiting:
+            self.used += size
+            return True
+        if self.waiting + size > self.limit or wait_s <= 0:
+            return False
+        self.waiting += size
+        try:
+            async with self._freed:
+                await asyncio.wait_for(
+                    self._freed.wait_for(lambda: self.used + size <= self.limit), wait_s
+                )
+                self.used += size
+                return True
+        except asyncio.TimeoutError:
+            return False
+        finally:
+            self.waiting -= size
+
+    async def release(self, size: int) -> None:
+        self.used -= size
+        async with self._freed:
+            self._freed.notify_all()
 
 
 class RateLimitedWarnings:
     """At most one WARNING line per kind every interval_s seconds; the next one says how many
-    were left out."""
+    were left out. Every one is counted in `counter` (a Prometheus counter by kind) if given."""
 
-    def __init__(self, interval_s: float) -> None:
+    def __init__(self, interval_s: float, counter=None) -> None:
         self.interval_s = interval_s
+        self.counter = counter
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
 
     def warning(self, kind: str, message: str, fields: dict[str, Any]) -> None:
+        if self.counter is not None:
+            self.counter.labels(kind).inc()
         now = time.monotonic()
         if now - self._last.get(kind, -float("inf")) < self.interval_s:
             self._suppressed[kind] = self._suppressed.get(kind, 0) + 1
@@ -89,6 +153,32 @@ class RateLimitedWarnings:
         self._last[kind] = now
         suppressed = self._suppressed.pop(kind, 0)
         log.warning(message, extra={"fields": {**fields, "suppressed_since_last": suppressed}})
+
+
+class _GrpcClientErrors(logging.Filter):
+    """grpc's own ERROR records that a client causes (a header value that is not UTF-8,
+    logged with a traceback by its metadata decoder), turned into the serving edge's
+    rate-limited warning of that kind. Installed once on grpc's logger; the newest edge
+    counts them."""
+
+    MESSAGES = {"Invalid encoding on %s": ("header not UTF-8", "a header value is not UTF-8")}
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.warnings: RateLimitedWarnings | None = None
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        known = self.MESSAGES.get(record.msg) if isinstance(record.msg, str) else None
+        if known is None:
+            return True
+        if self.warnings is not None:
+            value = str(record.args[0])[:80] if record.args else ""
+            self.warnings.warning(known[0], known[1], {"value": value})
+        return False
+
+
+_GRPC_CLIENT_ERRORS = _GrpcClientErrors()
+logging.getLogger("grpc._cython.cygrpc").addFilter(_GRPC_CLIENT_ERRORS)
 
 
 class _Rejected(Exception):
@@ -105,17 +195,29 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
         settings: EdgeSettings,
         metrics: ServiceMetrics,
         model_version: Callable[[], str | None],
-        limited_prefix: str,
+        logged_prefix: str,
+        limited_methods: frozenset[str],
     ) -> None:
-        """limited_prefix: methods under it (the labeling service) are admission-limited and
-        logged; model_version: the served version, for the metrics' label."""
+        """logged_prefix: calls of methods under it (the labeling service) get a log line;
+        limited_methods: paths of the heavy methods, admitted by slots and the byte budget;
+        model_version: the served version, for the metrics' label."""
         self.settings = settings
         self.metrics = metrics
         self.model_version = model_version
-        self.limited_prefix = limited_prefix
-        self.warnings = RateLimitedWarnings(settings.warning_interval_s)
+        self.logged_prefix = logged_prefix
+        self.limited_methods = limited_methods
+        self.warnings = RateLimitedWarnings(settings.warning_interval_s, metrics.client_errors)
+        _GRPC_CLIENT_ERRORS.warnings = self.warnings
         self.in_flight = 0
+        self.uploading: dict[str, int] = {}  # peer -> limited calls still receiving
+        self._budget: ByteBudget | None = None  # made on the server's event loop
         self._token = None if settings.token is None else settings.token.encode()
+
+    @property
+    def budget(self) -> ByteBudget:
+        if self._budget is None:
+            self._budget = ByteBudget(self.settings.max_inflight_bytes)
+        return self._budget
 
     async def intercept_service(self, continuation, handler_call_details):
         handler = await continuation(handler_call_details)
@@ -143,7 +245,8 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
     def _run(self, path: str, authorized: bool, handler: grpc.RpcMethodHandler):
         """The wrapped call: a coroutine (request_iterator, context) -> the handler's answer."""
         method = path.rsplit("/", 1)[-1]
-        limited = path.startswith(self.limited_prefix)
+        logged = path.startswith(self.logged_prefix)
+        limited = path in self.limited_methods
         unary_request = not handler.request_streaming
         inner = _behavior(handler)
         deserializer = handler.request_deserializer
@@ -154,6 +257,7 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
             fields: dict[str, Any] = {}
             token = _CALL_FIELDS.set(fields)
             admitted = quiet = False  # quiet: logged by a rate-limited warning instead
+            reserved = 0
             self.metrics.in_flight.labels(method).inc()
             try:
                 if not authorized:
@@ -161,18 +265,17 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
                     self.warnings.warning("unauthenticated", "unauthenticated call refused",
                                           {"method": method, "peer": context.peer()})  # fmt: skip
                     await context.abort(code, "missing or invalid bearer token")
-                if limited:
-                    if self.in_flight >= self.settings.max_concurrent_rpcs:
-                        code = grpc.StatusCode.RESOURCE_EXHAUSTED
-                        await context.abort(
-                            code,
-                            f"server busy: {self.in_flight} labeling calls in flight, the "
-                            f"limit is {self.settings.max_concurrent_rpcs}; retry with backoff",
-                        )
-                    self.in_flight += 1
-                    admitted = True
                 if unary_request:
-                    request = await self._receive(request_iterator, context, deserializer, method)
+                    if limited:
+                        raw = await self._upload(request_iterator, context, method)
+                        refused, quiet = await self._admit(context, method, len(raw))
+                        if refused:
+                            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, refused)
+                        admitted, reserved = True, len(raw) * MESSAGE_COST
+                    else:
+                        raw = await self._receive(request_iterator, context, method)
+                    request = _parse(deserializer, raw)
+                    del raw
                     if isinstance(request, _Malformed):  # a value, not raised: no traceback
                         code, quiet = grpc.StatusCode.INVALID_ARGUMENT, True
                         self._malformed(method, context, request)
@@ -191,9 +294,22 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
                 self._malformed(method, context, malformed)
                 await context.abort(code, str(malformed))
             except asyncio.CancelledError:
-                code = grpc.StatusCode.CANCELLED
+                code, quiet = grpc.StatusCode.CANCELLED, True
+                self.warnings.warning(
+                    "cancelled", "call cancelled by the client or its deadline",
+                    {"method": method, "peer": context.peer()},
+                )  # fmt: skip
                 raise
-            except Exception:
+            except Exception as error:
+                if context.cancelled() or context.done():
+                    # The client went away while the call ran: its mistake, not a fault.
+                    code, quiet = grpc.StatusCode.CANCELLED, True
+                    self.warnings.warning(
+                        "cancelled", "call ended by the client while it ran",
+                        {"method": method, "peer": context.peer(),
+                         "error": type(error).__name__},
+                    )  # fmt: skip
+                    return None
                 code = grpc.StatusCode.INTERNAL
                 log.exception("%s failed", method, extra={"fields": {"method": method}})
                 await context.abort(code, "internal error")
@@ -204,7 +320,9 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
                 self.metrics.in_flight.labels(method).dec()
                 if admitted:
                     self.in_flight -= 1
-                if limited and not quiet:
+                if reserved:
+                    await self.budget.release(reserved)
+                if logged and not quiet:
                     log.info(method, extra={"fields": {**fields, "code": code.name,
                                                        "seconds": round(seconds, 4),
                                                        "model_version": version}})  # fmt: skip
@@ -212,9 +330,56 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
 
         return run
 
-    async def _receive(self, request_iterator, context, deserializer, method: str):
-        """The call's one request message, parsed; _Malformed, or _Rejected / an abort when
-        none arrives in time."""
+    async def _upload(self, request_iterator, context, method: str) -> bytes:
+        """A limited call's message, received within the peer's cap on uploads in progress."""
+        peer = context.peer()
+        cap = self.settings.max_uploads_per_peer
+        if self.uploading.get(peer, 0) >= cap:
+            self.warnings.warning("too many uploads", "peer over its cap on uploads in progress",
+                                  {"method": method, "peer": peer, "cap": cap})  # fmt: skip
+            await context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"this connection has {cap} labeling requests still uploading, the limit per "
+                "connection; finish sending them first",
+            )
+        self.uploading[peer] = self.uploading.get(peer, 0) + 1
+        try:
+            return await self._receive(request_iterator, context, method)
+        finally:
+            self.uploading[peer] -= 1
+            if not self.uploading[peer]:
+                del self.uploading[peer]
+
+    async def _admit(self, context, method: str, size: int) -> tuple[str, bool]:
+        """Take a slot and reserve the call's bytes: ("", False); or (why not, naming the
+        limit, for RESOURCE_EXHAUSTED; whether a client warning logged it)."""
+        settings = self.settings
+        if self.in_flight >= settings.max_concurrent_rpcs:
+            return (f"server busy: {self.in_flight} labeling calls in flight, the limit is "
+                    f"{settings.max_concurrent_rpcs}; retry with backoff"), False  # fmt: skip
+        self.in_flight += 1
+        cost = size * MESSAGE_COST
+        if not await self.budget.reserve(cost, settings.budget_wait_s):
+            self.in_flight -= 1
+            limit_mb = settings.max_inflight_bytes / 2**20
+            if cost > settings.max_inflight_bytes:
+                message = (f"request: a {size / 2**20:.1f} MB message needs {cost / 2**20:.0f} MB "
+                           f"of the server's {limit_mb:.0f} MB budget for frames in flight, more "
+                           "than all of it; send fewer points or a smaller image")  # fmt: skip
+            else:
+                message = (f"server busy: frames in flight hold {self.budget.used / 2**20:.0f} MB "
+                           f"of the {limit_mb:.0f} MB budget and this one needs "
+                           f"{cost / 2**20:.0f} MB more; retry with backoff")  # fmt: skip
+            self.warnings.warning(
+                "over the byte budget", "call refused by the byte budget",
+                {"method": method, "peer": context.peer(), "bytes": size},
+            )  # fmt: skip
+            return message, True
+        return "", False
+
+    async def _receive(self, request_iterator, context, method: str) -> bytes:
+        """The call's one request message (raw bytes); _Rejected, or an abort when none
+        arrives in time."""
         try:
             raw = await asyncio.wait_for(anext(request_iterator), self.settings.receive_timeout_s)
         except StopAsyncIteration:
@@ -233,7 +398,7 @@ class EdgeInterceptor(grpc.aio.ServerInterceptor):
                 grpc.StatusCode.DEADLINE_EXCEEDED,
                 f"request: the message did not arrive within {self.settings.receive_timeout_s} s",
             )
-        return _parse(deserializer, raw)
+        return raw
 
     def _malformed(self, method: str, context, malformed: _Malformed) -> None:
         self.warnings.warning(

@@ -58,6 +58,10 @@ class ServiceMetrics:
             "detmatch_store_outcomes", "what storing a frame did (created, unchanged, replaced)",
             ["outcome"], registry=self.registry,
         )  # fmt: skip
+        self.client_errors = Counter(
+            "detmatch_client_errors", "calls that failed by the client's doing, by kind (logged "
+            "as rate-limited warnings)", ["kind"], registry=self.registry,
+        )  # fmt: skip
         self.model_version = Info("detmatch_model", "the served model", registry=self.registry)
         ProcessCollector(registry=self.registry)
         PlatformCollector(registry=self.registry)

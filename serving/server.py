@@ -68,7 +68,10 @@ class LabelingServer:
         the address cannot be bound (in use, or not an address of this host)."""
         metrics = metrics or ServiceMetrics()
         slot = service.slot
-        edge = EdgeInterceptor(config.edge(), metrics, lambda: slot.version, f"/{SERVICE_NAME}/")
+        edge = EdgeInterceptor(
+            config.edge(), metrics, lambda: slot.version, f"/{SERVICE_NAME}/",
+            frozenset({f"/{SERVICE_NAME}/LabelFrame"}),
+        )  # fmt: skip
         server = grpc.aio.server(interceptors=[edge], options=config.channel_options())
         inference = ThreadPoolExecutor(config.workers, thread_name_prefix="inference")
         storage = ThreadPoolExecutor(config.store_threads, thread_name_prefix="store")
@@ -159,7 +162,7 @@ async def _serve(
                     "label and store frames")  # fmt: skip
     slot = ModelSlot()
     store = LabelStore(store_root, shard)
-    service = LabelingService(slot, store, config.max_image_pixels)
+    service = LabelingService(slot, store, config.max_image_pixels, config.max_points)
     metrics = ServiceMetrics()
     try:
         server = await LabelingServer.create(service, config, metrics)

@@ -20,6 +20,7 @@ import numpy as np
 from detmatch.structures import Calibration
 from serving.decode import (
     DEFAULT_MAX_IMAGE_PIXELS,
+    DEFAULT_MAX_POINTS,
     decode_calibration,
     decode_frame_id,
     decode_image,
@@ -117,10 +118,12 @@ class LabelingService:
         slot: ModelSlot,
         store: LabelStore | None,
         max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS,
+        max_points: int = DEFAULT_MAX_POINTS,
     ) -> None:
         self.slot = slot
         self.store = store
         self.max_image_pixels = max_image_pixels
+        self.max_points = max_points
 
     def label_frame(self, request: FrameRequest) -> LabelResult:
         """Decode, label and (unless options.store is False or there is no store) store one
@@ -162,7 +165,7 @@ class LabelingService:
         namespace = decode_namespace(request.namespace)
         frame_id = decode_frame_id(request.frame_id)
         pixels, kind = decode_image(request.image, self.max_image_pixels)
-        cloud = decode_points(request.points)
+        cloud = decode_points(request.points, self.max_points)
         calib = decode_calibration(request.p2, request.r0_rect, request.tr_velo_to_cam)
         return DecodedFrame(
             namespace, frame_id, pixels, kind, request.image, cloud, calib, request.points

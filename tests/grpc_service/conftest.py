@@ -50,7 +50,7 @@ def running_server(
 ) -> Iterator[Running]:
     store = LabelStore(store_root, "s0")
     config = config or ServerConfig()
-    service = LabelingService(slot, store, config.max_image_pixels)
+    service = LabelingService(slot, store, config.max_image_pixels, config.max_points)
     background = BackgroundServer(service, config)
     try:
         port = background.start()

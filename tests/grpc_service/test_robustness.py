@@ -1,6 +1,6 @@
 """Hostile and broken clients against a real server: stalled streams, a reflection stream with
-one worker, the concurrency limit, bytes that are not a request, decompression bombs, huge
-ids, degenerate calibrations, a busy port, and binding beyond loopback."""
+one worker, bytes that are not a request, decompression bombs, huge ids, degenerate
+calibrations, a busy port, and binding beyond loopback (the limits: test_limits.py)."""
 
 from __future__ import annotations
 
@@ -111,22 +111,6 @@ def test_health_watch_streams_through_the_edge(server):
         answers = stub.Watch(health_pb2.HealthCheckRequest(), timeout=30)
         assert next(answers).status == health_pb2.HealthCheckResponse.SERVING
         answers.cancel()
-
-
-def test_calls_beyond_the_concurrency_limit_are_resource_exhausted(tmp_path, slot):
-    config = ServerConfig(max_concurrent_rpcs=2, receive_timeout_s=60.0)
-    with running_server(slot, tmp_path / "store", config) as running:
-        stalled = [StalledStream(running.target) for _ in range(2)]
-        try:
-            with LabelingClient(running.target, timeout_s=10) as client:
-                with pytest.raises(grpc.RpcError) as caught:
-                    client.label_kitti_frame(KITTI_SAMPLE, "000000")
-            assert caught.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
-            assert "2 labeling calls in flight, the limit is 2" in caught.value.details()
-            assert _health(running.target) == health_pb2.HealthCheckResponse.SERVING
-        finally:
-            for stream in stalled:
-                stream.close()
 
 
 def test_bytes_that_are_no_request_are_invalid_argument_logged_once(tmp_path, slot, caplog):
