@@ -7,7 +7,10 @@
 #
 #   benchmarks/ssl_seeds.sh [ssl_benchmark.py options...]
 #
-# Settings (environment): DATA (data set root; generated when missing), RUNS (run
+# Settings (environment): DATA (data set root; generated when missing), WORLD (its world
+# version when generated, default v1), CAMERA_DATA (a separate set, generator seed 7,
+# generated when missing: the 2D detector's COCO stand-in is trained on it once, in
+# CAMERA_RUN, before the seeds; unset: no stand-in), RUNS (run
 # directories), SEEDS, CONFIG, DEVICE, PARALLEL (1: seeds at once, 0: one after another;
 # default 1 where nvidia-smi finds a GPU), THREADS (torch threads per process; default 1 at
 # once, every core one after another), PYTHON, and STAGE_TIMEOUT (seconds each process may
@@ -15,7 +18,9 @@
 set -euo pipefail
 
 DATA=${DATA:-data/synth2k}
+WORLD=${WORLD:-v1}
 RUNS=${RUNS:-runs/ssl}
+CAMERA_RUN=${CAMERA_RUN:-$RUNS/camera}
 SEEDS=${SEEDS:-0 1 2}
 CONFIG=${CONFIG:-configs/ssl_cpu.toml}
 DEVICE=${DEVICE:-auto}
@@ -29,14 +34,26 @@ if [ "$PARALLEL" = 1 ]; then THREADS=${THREADS:-1}; else THREADS=${THREADS:-$COR
 mkdir -p "$RUNS/logs"
 
 if [ ! -f "$DATA/ImageSets/val.txt" ]; then
-    "$PYTHON" -m commands.main synth --out "$DATA" --frames 2000 --seed 0 \
-        --workers "$CORES" --quiet
+    "$PYTHON" -m commands.main synth --out "$DATA" --frames 2000 --seed 0 --world "$WORLD" \
+        --workers "$CORES" --quiet --overwrite
+fi
+camera=()
+if [ -n "${CAMERA_DATA:-}" ]; then
+    if [ ! -f "$CAMERA_DATA/ImageSets/val.txt" ]; then
+        "$PYTHON" -m commands.main synth --out "$CAMERA_DATA" --frames 600 --seed 7 \
+            --world "$WORLD" --val-fraction 0.1 --workers "$CORES" --quiet --overwrite
+    fi
+    # Once, before the seeds (at once they would share its run directory).
+    OMP_NUM_THREADS=$CORES "$PYTHON" -m benchmarks.camera_init --config "$CONFIG" \
+        --data "$CAMERA_DATA" --out "$CAMERA_RUN" --device "$DEVICE" >"$RUNS/logs/camera.log" 2>&1
+    camera=(--camera-data "$CAMERA_DATA" --camera-run "$CAMERA_RUN")
 fi
 failed=0
 run_seed() {
     OMP_NUM_THREADS=$THREADS ${STAGE_TIMEOUT:+timeout "$STAGE_TIMEOUT"} "$PYTHON" \
         -m benchmarks.ssl_benchmark --config "$CONFIG" --data "$DATA" --seed "$1" \
-        --out "$RUNS/s$1" --device "$DEVICE" "${@:2}" >"$RUNS/logs/s$1.log" 2>&1
+        --out "$RUNS/s$1" --device "$DEVICE" ${camera[@]+"${camera[@]}"} "${@:2}" \
+        >"$RUNS/logs/s$1.log" 2>&1
 }
 for seed in $SEEDS; do
     if [ "$PARALLEL" = 1 ]; then
