@@ -115,8 +115,8 @@ def _check_pixels(width: int, height: int, max_pixels: int) -> None:
 
 
 def decode_points(data: bytes, max_points: int = DEFAULT_MAX_POINTS) -> np.ndarray:
-    """Little-endian float32 bytes, N x 4 -> (N, 4) float32, every value finite, N at most
-    max_points."""
+    """Little-endian float32 bytes, N x 4 -> (N, 4) float32 (a read-only view of data), every
+    value finite, N at most max_points."""
     if not data:
         raise InvalidInput("points: empty point cloud; send N x 4 little-endian float32")
     if len(data) % 16:
@@ -127,10 +127,12 @@ def decode_points(data: bytes, max_points: int = DEFAULT_MAX_POINTS) -> np.ndarr
         raise InvalidInput(
             f"points: {len(data) // 16} points exceeds the limit of {max_points} points per frame"
         )
-    points = np.frombuffer(data, dtype="<f4").reshape(-1, 4).astype(np.float32)
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
-        bad = np.flatnonzero(~finite)
+    # A read-only view of the request's bytes, no copy (a byte-swapped one on a big-endian host).
+    points = np.frombuffer(data, dtype="<f4").reshape(-1, 4).astype(np.float32, copy=False)
+    with np.errstate(all="ignore"):  # one sum is finite only if every value is (or overflows)
+        finite_sum = bool(np.isfinite(points.sum()))
+    if not finite_sum and not np.isfinite(points).all():
+        bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
         raise InvalidInput(
             f"points: {len(bad)} of {len(points)} points hold NaN or Inf (first at row {bad[0]})"
         )

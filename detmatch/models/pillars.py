@@ -110,7 +110,7 @@ def pillarize(points: np.ndarray, grid: PillarGrid) -> Pillars:
     x_min, y_min, z_min, x_max, y_max, z_max = grid.point_cloud_range
     ny, nx = grid.shape
     max_points = grid.max_points_per_pillar
-    inside = (
+    inside = np.flatnonzero(
         (points[:, 0] >= x_min)
         & (points[:, 0] < x_max)
         & (points[:, 1] >= y_min)
@@ -118,27 +118,28 @@ def pillarize(points: np.ndarray, grid: PillarGrid) -> Pillars:
         & (points[:, 2] >= z_min)
         & (points[:, 2] < z_max)
     )
-    points = points[inside]
-    ix = np.clip(((points[:, 0] - x_min) / grid.pillar_size[0]).astype(np.int64), 0, nx - 1)
-    iy = np.clip(((points[:, 1] - y_min) / grid.pillar_size[1]).astype(np.int64), 0, ny - 1)
+    ix = np.clip(((points[inside, 0] - x_min) / grid.pillar_size[0]).astype(np.int64), 0, nx - 1)
+    iy = np.clip(((points[inside, 1] - y_min) / grid.pillar_size[1]).astype(np.int64), 0, ny - 1)
     cell = iy * nx + ix
-    order = np.argsort(cell, kind="stable")
-    cell, points = cell[order], points[order]
-    occupied, starts, counts = np.unique(cell, return_index=True, return_counts=True)
+    # Stable order by cell (a pillar keeps its first points in input order): NumPy sorts
+    # 16-bit keys by radix, about twice as fast as int64 keys on a 64-beam sweep.
+    order = np.argsort(cell.astype(np.uint16) if ny * nx <= 1 << 16 else cell, kind="stable")
+    cell = cell[order]
+    # The sorted cells' runs (what np.unique would give, without sorting them again).
+    starts = np.flatnonzero(np.concatenate(([cell.size > 0], cell[1:] != cell[:-1])))
+    occupied = cell[starts]
+    counts = np.diff(np.append(starts, cell.size))
     if occupied.size > grid.max_pillars:
         fullest = np.sort(np.argsort(-counts, kind="stable")[: grid.max_pillars])
         occupied, starts, counts = occupied[fullest], starts[fullest], counts[fullest]
     num_pillars = occupied.size
     kept = np.minimum(counts, max_points)
 
-    # Position of each kept point: pillar p, slot s < kept[p].
+    # Position of each kept point: pillar p, slot s < kept[p]; gathered once from the input.
     pillar_of_slot = np.repeat(np.arange(num_pillars), kept)
     slot = np.arange(pillar_of_slot.size) - np.repeat(np.cumsum(kept) - kept, kept)
-    source = starts[pillar_of_slot] + slot
-    kept_points = points[source]
+    kept_points = points[inside[order[starts[pillar_of_slot] + slot]]]
 
-    features = np.zeros((num_pillars, max_points, PILLAR_FEATURES), dtype=np.float32)
-    features[pillar_of_slot, slot, :4] = kept_points
     sums = np.stack(
         [
             np.bincount(pillar_of_slot, weights=kept_points[:, k], minlength=num_pillars)
@@ -147,10 +148,15 @@ def pillarize(points: np.ndarray, grid: PillarGrid) -> Pillars:
         axis=1,
     )
     means = (sums / np.maximum(kept, 1)[:, None]).astype(np.float32)
-    features[pillar_of_slot, slot, 4:7] = kept_points[:, :3] - means[pillar_of_slot]
     coords = np.stack([occupied // nx, occupied % nx], axis=1).astype(np.int64)
     centre_x = (coords[:, 1].astype(np.float32) + 0.5) * grid.pillar_size[0] + x_min
     centre_y = (coords[:, 0].astype(np.float32) + 0.5) * grid.pillar_size[1] + y_min
-    features[pillar_of_slot, slot, 7] = kept_points[:, 0] - centre_x[pillar_of_slot]
-    features[pillar_of_slot, slot, 8] = kept_points[:, 1] - centre_y[pillar_of_slot]
+    # Each kept point's 9 features as one row, written with one scatter of whole rows.
+    rows = np.empty((kept_points.shape[0], PILLAR_FEATURES), dtype=np.float32)
+    rows[:, :4] = kept_points
+    rows[:, 4:7] = kept_points[:, :3] - means[pillar_of_slot]
+    rows[:, 7] = kept_points[:, 0] - centre_x[pillar_of_slot]
+    rows[:, 8] = kept_points[:, 1] - centre_y[pillar_of_slot]
+    features = np.zeros((num_pillars, max_points, PILLAR_FEATURES), dtype=np.float32)
+    features.reshape(-1, PILLAR_FEATURES)[pillar_of_slot * max_points + slot] = rows
     return Pillars(features, coords, kept.astype(np.int64))

@@ -10,7 +10,7 @@ from detmatch.models.common import heatmap_peaks
 from detmatch.models.contract import forward_pillars
 from detmatch.models.detector2d import CenterNet2D
 from detmatch.models.detector3d import PointPillars3D
-from detmatch.models.pillars import pillarize
+from detmatch.models.pillars import PillarGrid, pillarize
 from detmatch.structures import LabeledBoxes
 from export.graphs import PillarDetector3DGraph
 from tests.conftest import REPO
@@ -151,6 +151,64 @@ def test_pillarize_keeps_points_and_features():
     centre = (coords[first, ::-1] + 0.5) * np.array(grid.pillar_size) + [x_min, y_min]
     np.testing.assert_allclose(pillar[:, 7:9], points[:2, :2] - centre, atol=1e-5)
     assert np.all(features[first, 2:] == 0)
+
+
+def _reference_pillars(points: np.ndarray, grid: PillarGrid) -> tuple[np.ndarray, ...]:
+    """pillarize's contract written plainly, one pillar at a time, with the same float32 /
+    float64 arithmetic: what the vectorised version must reproduce bit for bit."""
+    x_min, y_min, z_min, x_max, y_max, z_max = grid.point_cloud_range
+    ny, nx = grid.shape
+    cells: dict[int, list[int]] = {}
+    for i, (x, y, z, _) in enumerate(points):
+        if x_min <= x < x_max and y_min <= y < y_max and z_min <= z < z_max:
+            ix = min(
+                max(int(np.float32(x - np.float32(x_min)) / np.float32(grid.pillar_size[0])), 0),
+                nx - 1,
+            )
+            iy = min(
+                max(int(np.float32(y - np.float32(y_min)) / np.float32(grid.pillar_size[1])), 0),
+                ny - 1,
+            )
+            cells.setdefault(iy * nx + ix, []).append(i)  # input order within a pillar
+    occupied = sorted(cells)
+    if len(occupied) > grid.max_pillars:  # the fullest, ties to the lower cell; then cell order
+        fullest = sorted(occupied, key=lambda c: (-len(cells[c]), c))[: grid.max_pillars]
+        occupied = sorted(fullest)
+    m = grid.max_points_per_pillar
+    features = np.zeros((len(occupied), m, 9), dtype=np.float32)
+    coords = np.array([[c // nx, c % nx] for c in occupied], dtype=np.int64).reshape(-1, 2)
+    counts = np.array([min(len(cells[c]), m) for c in occupied], dtype=np.int64)
+    for p, cell in enumerate(occupied):
+        kept = points[cells[cell][:m]]
+        mean = (kept[:, :3].astype(np.float64).sum(axis=0) / len(kept)).astype(np.float32)
+        centre_x = (np.float32(cell % nx) + np.float32(0.5)) * np.float32(grid.pillar_size[0])
+        centre_y = (np.float32(cell // nx) + np.float32(0.5)) * np.float32(grid.pillar_size[1])
+        features[p, : len(kept), :4] = kept
+        features[p, : len(kept), 4:7] = kept[:, :3] - mean
+        features[p, : len(kept), 7] = kept[:, 0] - (centre_x + np.float32(x_min))
+        features[p, : len(kept), 8] = kept[:, 1] - (centre_y + np.float32(y_min))
+    return features, coords, counts
+
+
+@pytest.mark.parametrize("max_pillars", [20_000, 150])
+def test_pillarize_matches_its_contract_bit_for_bit(max_pillars):
+    """Crowded pillars (more points than max_points_per_pillar), points outside the range on
+    every side, and more occupied pillars than max_pillars."""
+    rng = np.random.default_rng(3)
+    tiny = PointPillars3D(TINY.detector3d, NUM_CLASSES).grid
+    grid = PillarGrid(tiny.point_cloud_range, tiny.pillar_size, tiny.max_points_per_pillar,
+                      max_pillars)  # fmt: skip
+    x_min, y_min, z_min, x_max, y_max, z_max = grid.point_cloud_range
+    spread = rng.uniform([x_min - 5, y_min - 5, z_min - 1, 0], [x_max + 5, y_max + 5, z_max + 1, 1],
+                         size=(3000, 4))  # fmt: skip
+    crowd = rng.normal([10.0, 2.0, -1.0, 0.5], [0.3, 0.3, 0.5, 0.1], size=(400, 4))
+    points = np.concatenate([spread, crowd])[rng.permutation(3400)].astype(np.float32)
+    expected = _reference_pillars(points, grid)
+    got = pillarize(points, grid).arrays
+    assert got[2].max() == grid.max_points_per_pillar  # some pillars were cut
+    for mine, theirs in zip(got, expected, strict=True):
+        assert mine.dtype == theirs.dtype and mine.shape == theirs.shape
+        assert np.array_equal(mine, theirs)
 
 
 def test_3d_detector_handles_an_empty_point_cloud(detector_3d):
