@@ -131,6 +131,34 @@ def test_odd_image_modes_decode_to_rgb_or_are_refused(mode):
     assert pixels.shape == (6, 8, 3) and pixels.dtype == np.uint8
 
 
+def _saved_png(image: Image.Image, **options) -> bytes:
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG", **options)
+    return buffer.getvalue()
+
+
+def test_the_fast_png_path_gives_pillows_pixels():
+    """8-bit RGB PNGs decode through libspng: the same pixels as Pillow on the KITTI frames,
+    on noise, interlaced, with a transparency colour and with a gamma chunk; other PNGs go
+    through Pillow as before."""
+    import serving.decode as decode
+
+    assert decode._spng is not None  # the serve extra installs it
+    rng = np.random.default_rng(0)
+    noise = Image.fromarray(rng.integers(0, 256, (37, 53, 3), dtype=np.uint8))
+    cases = [
+        (KITTI_SAMPLE / "training" / "image_2" / f"00000{i}.png").read_bytes() for i in range(3)
+    ]
+    cases += [_saved_png(noise), _saved_png(noise, interlace=1),
+              _saved_png(noise, transparency=(0, 0, 0)), _saved_png(noise, gamma=0.5)]  # fmt: skip
+    for data in cases:
+        reference = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+        pixels, kind = decode_image(data)
+        assert kind == "png" and pixels.dtype == np.uint8
+        assert np.array_equal(pixels, reference)
+    assert decode._decode_rgb8_png(cases[0]) is not None  # the fast path ran on a camera frame
+
+
 def test_long_ids_are_cut_in_errors():
     """A 16 KB frame id was echoed whole: the status then exceeded gRPC's limit and the client
     got 'Stream removed' instead of INVALID_ARGUMENT."""
