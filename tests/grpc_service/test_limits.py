@@ -67,6 +67,13 @@ def _refusal(running, frame_id: str = "000000") -> grpc.RpcError:
     return caught.value
 
 
+def _hold_one_call(running, labeler: GatedLabeler, pool: ThreadPoolExecutor):
+    """Frame 000001's call, sent on the pool and held at the labeler's gate: its future."""
+    first = pool.submit(_label, running, "000001")
+    assert labeler.entered.acquire(timeout=30)
+    return first
+
+
 def _message_bytes() -> int:
     return request_message(kitti_frame(KITTI_SAMPLE, "000000")).ByteSize()
 
@@ -109,8 +116,7 @@ def test_calls_beyond_the_slots_are_refused_while_model_info_answers(tmp_path, g
     config = ServerConfig(token=TOKEN, max_concurrent_rpcs=1, workers=2)
     with running_server(slot, tmp_path / "store", config) as running:
         with ThreadPoolExecutor(1) as pool:
-            first = pool.submit(_label, running, "000001")
-            assert labeler.entered.acquire(timeout=30)
+            first = _hold_one_call(running, labeler, pool)
             refused = _refusal(running)
             assert refused.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
             assert "1 labeling calls in flight, the limit is 1" in refused.details()
@@ -130,8 +136,7 @@ def test_the_byte_budget_queues_then_refuses_and_frees_its_bytes(tmp_path, gated
     config = ServerConfig(token=TOKEN, workers=2, max_inflight_bytes=4 * size, budget_wait_s=1.0)
     with running_server(slot, tmp_path / "store", config) as running:
         with ThreadPoolExecutor(2) as pool:
-            first = pool.submit(_label, running, "000001")
-            assert labeler.entered.acquire(timeout=30)
+            first = _hold_one_call(running, labeler, pool)
             refused = _refusal(running)
             assert refused.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
             assert "of the 0 MB budget" not in refused.details()
