@@ -124,7 +124,7 @@ def test_people_lose_more_returns_in_v2() -> None:
             synth = generate_frame(13, index, world=world)
             people = synth.frame.labels.boxes_3d.data[synth.frame.labels.names == "Pedestrian"]
             if len(people):
-                counts += list(points_in_boxes(synth.frame.points[:, :3], people).sum(axis=0))
+                counts += list(points_in_boxes(synth.frame.points[:, :3], people).sum(axis=1))
         return float(np.mean(counts))
 
     assert points_per_person("v2") < 0.95 * points_per_person("v1")
