@@ -18,6 +18,9 @@ from serving.sessions import SessionSettings
 # the byte budget, bounds what uploads in progress hold (BENCHMARKS.md, "Heavy and stalled
 # clients"); a message over it is refused as its first bytes arrive.
 DEFAULT_MAX_MESSAGE_BYTES = 48 * 1024 * 1024
+# A call's whole header block (HPACK-decoded, with gRPC's own headers): room for a token of a
+# few kilobytes.
+MAX_HEADER_BYTES = 16 * 1024
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,12 @@ class ServerConfig:
             # A second server on a busy port must fail to bind, not share it silently.
             ("grpc.so_reuseport", 0),
             ("grpc.max_concurrent_streams", self.max_streams_per_connection),
+            # One limit for a call's headers: under it a call reaches authentication, over it
+            # gRPC refuses it (RESOURCE_EXHAUSTED). gRPC's own default refuses header blocks
+            # between 8 and 16 KiB at random, so the same token would pass on one call and not
+            # on the next.
+            ("grpc.max_metadata_size", MAX_HEADER_BYTES),
+            ("grpc.absolute_max_metadata_size", MAX_HEADER_BYTES),
             ("grpc.keepalive_time_ms", ms(self.keepalive_s)),
             ("grpc.keepalive_timeout_ms", ms(self.keepalive_timeout_s)),
             ("grpc.keepalive_permit_without_calls", 1),
