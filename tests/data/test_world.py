@@ -117,7 +117,7 @@ def test_new_clutter_shows_in_both_sensors_and_is_never_labelled() -> None:
         assert np.any(image != again, axis=-1).sum() >= 10, kind
 
 
-def test_people_lose_more_returns_in_v2() -> None:
+def test_people_lose_more_returns_in_v2_and_more_again_in_v3() -> None:
     def points_per_person(world: str) -> float:
         counts = []
         for index in range(6):
@@ -127,7 +127,22 @@ def test_people_lose_more_returns_in_v2() -> None:
                 counts += list(points_in_boxes(synth.frame.points[:, :3], people).sum(axis=1))
         return float(np.mean(counts))
 
-    assert points_per_person("v2") < 0.95 * points_per_person("v1")
+    v1, v2, v3 = (points_per_person(world) for world in ("v1", "v2", "v3"))
+    assert v3 < 0.95 * v2 < 0.95 * 0.95 * v1
+
+
+def test_the_crowded_world_has_more_people_and_cyclists_and_is_v3_otherwise() -> None:
+    def count(world: str, kind: str) -> int:
+        return sum(
+            sum(o.kind == kind for o in sample_scene(21, i, WORLDS[world]).objects)
+            for i in range(6)
+        )
+
+    for kind in ("Pedestrian", "Cyclist"):
+        assert count("v3-crowd", kind) > 2 * count("v3", kind), kind
+    crowd, v3 = WORLDS["v3-crowd"], WORLDS["v3"]
+    assert replace(crowd, name="v3", pedestrian_groups=v3.pedestrian_groups,
+                   cyclists=v3.cyclists) == v3  # fmt: skip
 
 
 def test_the_camera_stand_in_set_shares_no_seed_or_scene_with_the_benchmark(

@@ -174,7 +174,7 @@ def place_parked_rows(placer: Placer) -> None:
                 s += rng.uniform(4.0, 9.0)
 
 
-def place_road_users(placer: Placer) -> None:
+def place_road_users(placer: Placer, world: World) -> None:
     """Traffic in the lanes (mostly along the road, some turning), pedestrians on the
     sidewalks (alone or in groups, some crossing), cyclists at the lane edges."""
     rng, road = placer.rng, placer.road
@@ -198,7 +198,7 @@ def place_road_users(placer: Placer) -> None:
                 kind, placer.road_user(kind), s, u_lane + rng.normal(0, 0.25), yaw, margin=0.3
             )
 
-    for _ in range(int(rng.integers(1, 6))):
+    for _ in range(int(rng.integers(*world.pedestrian_groups))):
         side = int(rng.choice([-1, 1]))
         edge, outer = _edges(road, side)
         if outer == edge + side * CURB:
@@ -226,7 +226,7 @@ def place_road_users(placer: Placer) -> None:
         yaw = rng.choice([-1, 1]) * np.pi / 2 + rng.normal(0, 0.2)
         placer.place("Pedestrian", placer.road_user("Pedestrian"), s, u, yaw, 0.1)
 
-    for _ in range(int(rng.integers(0, 3))):
+    for _ in range(int(rng.integers(*world.cyclists))):
         choice = rng.random()
         if choice < 0.5:
             u, yaw = road.lanes_right + rng.uniform(0.5, 0.9), 0.0
@@ -340,7 +340,7 @@ def sample_scene(seed: int, frame_index: int, world: World = WORLDS[DEFAULT_WORL
     lighting = sample_lighting(rng)
     placer = Placer(rng, road)
     place_parked_rows(placer)
-    place_road_users(placer)
+    place_road_users(placer, world)
     place_clutter(placer, world)
     place_background(placer)
     return placer.scene(lighting, int(rng.integers(2**31)))
