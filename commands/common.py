@@ -131,3 +131,26 @@ def prepare_output(out: Path, overwrite: bool, written: Sequence[str]) -> None:
             shutil.rmtree(path)
         elif path.exists() or path.is_symlink():
             path.unlink()
+
+
+def add_store_options(parser: argparse.ArgumentParser, required: bool, what: str) -> None:
+    """--store (a directory, or a postgresql:// URL: the index every replica shares) and
+    --store-root (the shared store's files)."""
+    parser.add_argument(
+        "--store", required=required,
+        help=f"{what}: a directory (the embedded store: SQLite shard indexes), or a "
+        "postgresql://USER:PASSWORD@HOST:PORT/DB URL (the index shared by every replica, "
+        "with --store-root; the postgres extra); the password may come from $PGPASSWORD",
+    )  # fmt: skip
+    parser.add_argument(
+        "--store-root",
+        help="with a postgresql:// --store: the directory of the frames' files, mounted by "
+        "every replica at the same path",
+    )
+
+
+def store_location(args: argparse.Namespace):
+    """The store `--store` / `--store-root` name (serving.store_index.store_location)."""
+    from serving.store_index import store_location as location
+
+    return location(args.store, args.store_root)

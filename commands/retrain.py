@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from commands.common import add_device_option
+from commands.common import add_device_option, add_store_options, store_location
 from retrain.demo_results import DEFAULT_OUT, DEFAULT_SIZE, SIZES, describe_sizes
 
 # `detmatch retrain`'s exit status when another retraining holds the repository's lock.
@@ -24,12 +24,15 @@ def retrain(args: argparse.Namespace) -> int:
     every = parse_period(args.every) if args.every else None
     if args.times is not None and (every is None or args.times < 1):
         raise ValueError("--times N (N >= 1) goes with --every")
+    store = store_location(args)
     for name in ("store", "data", "repository"):
+        if name == "store" and not isinstance(store, Path):
+            continue
         if not Path(getattr(args, name)).is_dir():
             raise FileNotFoundError(f"--{name} {getattr(args, name)}: no such directory")
     repository = Path(args.repository)
     request = RoundRequest(
-        store=Path(args.store),
+        store=store,
         data=Path(args.data),
         repository=repository,
         work=Path(args.work) if args.work else repository / ".retrain",
@@ -86,7 +89,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
         "or skipped), 1 the export checks failed, 2 bad input, 3 another retraining holds the "
         "repository's lock.",
     )
-    parser.add_argument("--store", required=True, help="label store directory (every shard)")
+    add_store_options(parser, True, "label store (every shard)")
     parser.add_argument(
         "--data", required=True, help="the original data set: labeled frames, pool and gate split"
     )

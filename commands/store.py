@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from commands.common import add_overwrite_option, prepare_output
+from commands.common import add_overwrite_option, add_store_options, prepare_output, store_location
 
 # What `detmatch store export` writes into --out (removed first by --overwrite).
 EXPORT_OUTPUTS = ("training", "ImageSets", "labels", "export.json")
@@ -16,7 +16,7 @@ def store_export(args: argparse.Namespace) -> int:
 
     prepare_output(Path(args.out), args.overwrite, EXPORT_OUTPUTS)
     summary = export_store(
-        Path(args.store), Path(args.out), args.val_fraction, args.seed, args.namespace or None
+        store_location(args), Path(args.out), args.val_fraction, args.seed, args.namespace or None
     )
     print(
         f"exported {summary.frames} stored frames of namespace(s) {', '.join(summary.namespaces)}"
@@ -35,7 +35,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
         "val ImageSets (`detmatch train --data OUT` runs on it)",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument("--store", required=True, help="label store directory")
+    add_store_options(parser, True, "label store")
     parser.add_argument("--out", required=True, help="output directory (KITTI layout)")
     parser.add_argument(
         "--val-fraction",

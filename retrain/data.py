@@ -30,6 +30,7 @@ from detmatch.files import sha256_file
 from retrain.snapshot import frame_digest, snapshot_id
 from serving.manifest import RoundData
 from serving.store import export_store
+from serving.store_export import Store
 
 # The ImageSets names inside a round's data directory.
 LABELED_SPLIT = "round_labeled"
@@ -61,7 +62,7 @@ def stored_frame_id(exported_id: str) -> str:
 
 def compose_round_data(
     data_root: str | os.PathLike,
-    store_root: str | os.PathLike,
+    store_root: Store,
     out: str | os.PathLike,
     sources: SourceSplits,
     stored_labels: str = "pool",
@@ -92,9 +93,7 @@ def compose_round_data(
         for kind, source in _frame_files(original, frame_id).items():
             os.symlink(source.resolve(), training / kind / source.name)
     gate_clouds = {sha256_file(original.points_path(i)) for i in gate}
-    stored, excluded, snapshot = _import_store(
-        Path(store_root), out, gate_clouds, set(frames), progress
-    )
+    stored, excluded, snapshot = _import_store(store_root, out, gate_clouds, set(frames), progress)
     with_labels = stored_labels == "labeled"
     write_image_set(
         out / "ImageSets" / f"{LABELED_SPLIT}.txt", labeled + (stored if with_labels else [])
@@ -149,12 +148,10 @@ def _frame_files(dataset: KittiDataset, frame_id: str) -> dict[str, Path]:
 
 
 def _import_store(
-    store: Path, out: Path, gate_clouds: set[str], taken: set[str], progress: bool
+    store: Store, out: Path, gate_clouds: set[str], taken: set[str], progress: bool
 ) -> tuple[list[str], int, str]:
     """Export every stored frame and move it into out under its round id. Returns the round
     ids, the number left out as gate frames and the snapshot id of everything exported."""
-    if not store.is_dir():
-        raise FileNotFoundError(f"no label store at {store}")
     export = out / EXPORT_DIR
     export_store(store, export)
     exported = []

@@ -62,6 +62,7 @@ from serving.repository import (
     training_checkpoint,
     version_dir,
 )
+from serving.store_index import SharedStore
 
 CURRENT = "current"
 ROUNDS = "rounds"
@@ -79,7 +80,7 @@ class RoundRequest:
     (default REPOSITORY/.retrain), a config (None: the served version's) with `--set`
     overrides, and whether to train even when the store holds nothing new."""
 
-    store: Path
+    store: Path | SharedStore
     data: Path
     repository: Path
     work: Path

@@ -11,12 +11,13 @@ trained on; the scheduler skips a round while the store's id has not changed.
 from __future__ import annotations
 
 import hashlib
-import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 from serving.store import list_frames
+from serving.store_export import Store
+from serving.store_index import SharedStore
 
 
 def frame_digest(file_digests: Iterable[str]) -> str:
@@ -35,10 +36,10 @@ class StoreSnapshot:
     frames: int
 
 
-def store_snapshot(store: str | os.PathLike) -> StoreSnapshot:
-    """The id and frame count of everything a label store holds now (every shard)."""
-    store = Path(store)
-    if not store.is_dir():
+def store_snapshot(store: Store) -> StoreSnapshot:
+    """The id and frame count of everything a label store holds now (every shard; or a shared
+    store's index)."""
+    if not isinstance(store, SharedStore) and not Path(store).is_dir():
         raise FileNotFoundError(f"no label store at {store}")
     records = list_frames(store)
     return StoreSnapshot(snapshot_id(frame_digest(r.files.values()) for r in records), len(records))

@@ -35,7 +35,6 @@ import logging
 import os
 import queue
 import secrets
-import sqlite3
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -52,18 +51,15 @@ from serving.errors import StoreError
 from serving.labeler import FrameLabels
 from serving.serialize import label_records, labels_to_json, labels_to_objects_3d
 from serving.store_export import check_integrity, export_store, list_frames
+from serving.store_index import Index, SharedStore, SqliteIndex, store_files_root
 from serving.store_layout import (
-    COLUMNS,
     LEGACY_NAMESPACE,
     LOCK_FILE,
     SHARDS_DIR,
     StoredFrame,
     frame_paths,
-    open_index,
-    record_of,
     recover,
     sha256,
-    transaction,
 )
 
 __all__ = [
@@ -81,9 +77,7 @@ __all__ = [
 log = logging.getLogger("detmatch.serving")
 
 DEFAULT_NAMESPACE = LEGACY_NAMESPACE
-SELECT_FRAME = f"SELECT {', '.join(COLUMNS)} FROM frames WHERE namespace = ? AND frame_id = ?"
 IO_THREADS = 16
-UPSERT = f"INSERT OR REPLACE INTO frames VALUES ({', '.join('?' * len(COLUMNS))})"
 
 
 def validate_namespace(namespace: str) -> str:
@@ -136,23 +130,33 @@ class CommitStats:
 class LabelStore:
     """One shard of a label store, opened for writing by this process; thread-safe."""
 
-    def __init__(self, root: str | os.PathLike, shard: str = "default") -> None:
-        self.root = Path(root)
+    def __init__(self, root: str | os.PathLike | SharedStore, shard: str = "default") -> None:
+        """root: the store's directory, or a SharedStore (a PostgreSQL index and the root
+        directory every replica mounts)."""
+        self.location = root if isinstance(root, SharedStore) else Path(root)
+        self.root = store_files_root(self.location)
         try:
             self.shard = validate_frame_id(shard)
         except ValueError:
             raise ValueError(f"invalid shard {shard!r}: use letters, digits, '_' or '-'") from None
         self.path = self.root / SHARDS_DIR / self.shard
-        self.path.mkdir(parents=True, exist_ok=True)
-        self._lock_file = _lock_shard(self.path)
         try:
-            self._db = open_index(self.path)
-            records = self._select_all()
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise StoreError(
+                f"cannot write the label store's files at {self.path}: {error}"
+            ) from None
+        self._lock_file = _lock_shard(self.path)
+        self._index: Index | None = None
+        try:
+            self._index = _open_index(self.location, self.path)
+            records = self._index.shard_records(self.shard)
             recovery = recover(self.path, records)
         except BaseException:
+            if self._index is not None:
+                self._index.close()
             self._lock_file.close()
             raise
-        self._db_lock = threading.Lock()
         # fsyncs run concurrently: the file system commits concurrent fsyncs in one journal
         # transaction (ext4, xfs), so a batch's files and directories cost about one.
         self._io = ThreadPoolExecutor(IO_THREADS, thread_name_prefix=f"store-io-{self.shard}")
@@ -180,8 +184,7 @@ class LabelStore:
         self._queue.put(None)
         self._committer.join()
         self._io.shutdown(wait=True)
-        with self._db_lock:
-            self._db.close()
+        self._index.close()
         self._lock_file.close()
         log.info(
             "label store closed",
@@ -190,10 +193,7 @@ class LabelStore:
         )  # fmt: skip
 
     def get(self, frame_id: str, namespace: str = DEFAULT_NAMESPACE) -> StoredFrame | None:
-        key = (validate_namespace(namespace), validate_frame_id(frame_id))
-        with self._db_lock:
-            row = self._db.execute(SELECT_FRAME, key).fetchone()
-        return None if row is None else record_of(row, self.shard)
+        return self._index.get((validate_namespace(namespace), validate_frame_id(frame_id)))
 
     def put(
         self,
@@ -304,51 +304,38 @@ class LabelStore:
             pending.future.set_result(result)
 
     def _commit_batch(self, batch: list[_Pending]) -> list[PutResult]:
-        with self._db_lock:
-            current = {}
-            for key in {p.record.key for p in batch}:
-                row = self._db.execute(SELECT_FRAME, key).fetchone()
-                current[key] = None if row is None else record_of(row, self.shard)
-            results, creates, replaces, discard, rows = [], [], [], [], []
+        # Every file is durable before any row lists it: one concurrent round of fsyncs.
+        files = [t for p in batch for t in p.temporaries.values()]
+        list(self._io.map(fsync_path, [*files, *{t.parent for t in files}]))
+        results, written = [], []
+        try:
+            with self._index.locked(p.record.key for p in batch) as rows:
+                for pending in batch:  # in order: a later labeling of a key lands last
+                    record, before = pending.record, rows.current[pending.record.key]
+                    if before is not None and before.files == record.files:
+                        results.append(
+                            PutResult(before, StoreOutcome.UNCHANGED, before.model_version)
+                        )
+                        continue
+                    if before is not None:
+                        record = replace(record, first_stored_at=before.first_stored_at)
+                    outcome = StoreOutcome.CREATED if before is None else StoreOutcome.REPLACED
+                    results.append(PutResult(record, outcome, before and before.model_version))
+                    rows.current[record.key] = record
+                    rows.writes.append(record)
+                    written.append(pending)
+        except BaseException:
             for pending in batch:
-                record, before = pending.record, current[pending.record.key]
-                if before is not None and before.files == record.files:
-                    results.append(PutResult(before, StoreOutcome.UNCHANGED, before.model_version))
-                    discard.append(pending)
-                    continue
-                if before is not None:
-                    record = replace(record, first_stored_at=before.first_stored_at)
-                    replaces.append(pending)
-                    outcome = StoreOutcome.REPLACED
-                else:
-                    creates.append(pending)
-                    outcome = StoreOutcome.CREATED
-                results.append(PutResult(record, outcome, before and before.model_version))
-                current[record.key] = record
-                rows.append(record.row())
-            written = creates + replaces
-            files = [t for p in written for t in p.temporaries.values()]
-            directories = {t.parent for t in files}
-            list(self._io.map(fsync_path, [*files, *directories]))  # one concurrent round
-            try:
-                with transaction(self._db):
-                    self._db.executemany(UPSERT, rows)
-            except sqlite3.Error as error:
-                for pending in written:
-                    _remove(pending.temporaries)
-                raise StoreError(f"index: {error}") from error
-            chosen = {id(p) for p in written}
-            for pending in batch:  # in order: a later labeling of a key lands last
-                if id(pending) in chosen:
-                    for relative, temporary in pending.temporaries.items():
-                        os.replace(temporary, self.path / relative)
-        for pending in discard:
-            _remove(pending.temporaries)
+                _remove(pending.temporaries)
+            raise
+        chosen = {id(p) for p in written}
+        for pending in batch:
+            if id(pending) in chosen:
+                for relative, temporary in pending.temporaries.items():
+                    os.replace(temporary, self.path / relative)
+            else:
+                _remove(pending.temporaries)
         return results
-
-    def _select_all(self) -> list[StoredFrame]:
-        rows = self._db.execute(f"SELECT {', '.join(COLUMNS)} FROM frames").fetchall()
-        return [record_of(r, self.shard) for r in rows]
 
     def __enter__(self) -> LabelStore:
         return self
@@ -386,6 +373,14 @@ def _points_bytes(points: np.ndarray) -> bytes:
 def _remove(temporaries: dict[str, Path]) -> None:
     for temporary in temporaries.values():
         temporary.unlink(missing_ok=True)
+
+
+def _open_index(location: Path | SharedStore, shard_dir: Path) -> Index:
+    if isinstance(location, SharedStore):
+        from serving.store_postgres import PostgresIndex
+
+        return PostgresIndex(location)
+    return SqliteIndex(shard_dir)
 
 
 def _lock_shard(shard_dir: Path):

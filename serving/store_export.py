@@ -19,6 +19,7 @@ from pathlib import Path
 
 from detmatch.data.kitti import FRAME_ID_PATTERN, write_image_set
 from detmatch.files import atomic_write_bytes
+from serving.store_index import SharedStore, store_files_root
 from serving.store_layout import (
     INDEX_FILE,
     NAMESPACES_DIR,
@@ -28,6 +29,7 @@ from serving.store_layout import (
     resolve_file,
 )
 
+Store = str | os.PathLike | SharedStore  # a store's directory, or a shared store
 DEFAULT_VAL_FRACTION = 0.1
 EXPORT_MANIFEST = "export.json"
 NAMESPACE_SEPARATOR = "__"
@@ -45,28 +47,45 @@ def _shard_indexes(root: str | os.PathLike) -> list[Path]:
     return sorted((Path(root) / SHARDS_DIR).glob(f"*/{INDEX_FILE}"))
 
 
-def list_frames(root: str | os.PathLike, namespace: str | None = None) -> list[StoredFrame]:
+def _all_records(store: Store) -> Iterable[StoredFrame]:
+    """Every index row: of every shard's SQLite index, or of a shared store's PostgreSQL one."""
+    if isinstance(store, SharedStore):
+        from serving.store_postgres import read_all
+
+        yield from read_all(store)
+        return
+    for index in _shard_indexes(store):
+        yield from read_records(index)
+
+
+def list_frames(store: Store, namespace: str | None = None) -> list[StoredFrame]:
     """One record per key (the winning one, see the module docstring) of every shard, sorted
-    by (namespace, frame id); only `namespace`'s when given."""
+    by (namespace, frame id); only `namespace`'s when given. store: the store's directory or
+    a SharedStore (whose index holds one row per key already)."""
     winners: dict[tuple[str, str], StoredFrame] = {}
-    for index in _shard_indexes(root):
-        for record in read_records(index):
-            if namespace is not None and record.namespace != namespace:
-                continue
-            held = winners.get(record.key)
-            if held is None or _precedence(record) > _precedence(held):
-                winners[record.key] = record
+    for record in _all_records(store):
+        if namespace is not None and record.namespace != namespace:
+            continue
+        held = winners.get(record.key)
+        if held is None or _precedence(record) > _precedence(held):
+            winners[record.key] = record
     return [winners[k] for k in sorted(winners)]
 
 
-def check_integrity(root: str | os.PathLike) -> list[str]:
+def check_integrity(store: Store) -> list[str]:
     """Problems found: SQLite integrity checks and every indexed file's checksum (empty: fine).
     Every shard's records are checked, not only the winners; a committed file still under its
-    temporary name (see `resolve_file`) is fine."""
+    temporary name (see `resolve_file`) is fine. A shared store: every row's files."""
     import sqlite3
 
+    if isinstance(store, SharedStore):
+        return [
+            problem
+            for record in _all_records(store)
+            for problem in _file_problems(store.root / SHARDS_DIR / record.shard, record)
+        ]
     problems = []
-    for index in _shard_indexes(root):
+    for index in _shard_indexes(store):
         db = sqlite3.connect(f"file:{index}?mode=ro", uri=True)
         try:
             result = db.execute("PRAGMA integrity_check").fetchone()[0]
@@ -75,11 +94,16 @@ def check_integrity(root: str | os.PathLike) -> list[str]:
         if result != "ok":
             problems.append(f"{index}: {result}")
         for record in read_records(index):
-            for relative, digest in record.files.items():
-                path = index.parent / relative
-                if resolve_file(index.parent, relative, digest) is None:
-                    state = "checksum mismatch" if path.is_file() else "missing"
-                    problems.append(f"{path}: {state}")
+            problems += _file_problems(index.parent, record)
+    return problems
+
+
+def _file_problems(shard_dir: Path, record: StoredFrame) -> list[str]:
+    problems = []
+    for relative, digest in record.files.items():
+        path = shard_dir / relative
+        if resolve_file(shard_dir, relative, digest) is None:
+            problems.append(f"{path}: {'checksum mismatch' if path.is_file() else 'missing'}")
     return problems
 
 
@@ -99,7 +123,7 @@ def split_of(namespace: str, frame_id: str, val_fraction: float, seed: int = 0) 
 
 
 def export_store(
-    root: str | os.PathLike,
+    store: Store,
     out: str | os.PathLike,
     val_fraction: float = DEFAULT_VAL_FRACTION,
     seed: int = 0,
@@ -116,14 +140,14 @@ def export_store(
     file is checked against its checksum."""
     if not 0.0 <= val_fraction < 1.0:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
-    root, out = Path(root), Path(out)
+    root, out = store_files_root(store), Path(out)
     if not root.is_dir():
         raise FileNotFoundError(f"no label store at {root}")
     wanted = None if namespaces is None else set(namespaces)
-    records = [r for r in list_frames(root) if wanted is None or r.namespace in wanted]
+    records = [r for r in list_frames(store) if wanted is None or r.namespace in wanted]
     if wanted is not None and (missing := wanted - {r.namespace for r in records}):
         raise ValueError(
-            f"the store {root} holds no frame of namespace {', '.join(sorted(missing))}"
+            f"the store {store} holds no frame of namespace {', '.join(sorted(missing))}"
         )
     present = tuple(sorted({r.namespace for r in records}))
     names = {r.key: _export_id(r, len(present) > 1) for r in records}
@@ -142,7 +166,7 @@ def export_store(
     write_image_set(out / "ImageSets" / "val.txt", val)
     write_image_set(out / "ImageSets" / "trainval.txt", sorted(train + val))
     manifest = {
-        "store": str(root.resolve()),
+        "store": str(store) if isinstance(store, SharedStore) else str(root.resolve()),
         "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "val_fraction": val_fraction,
         "seed": seed,
