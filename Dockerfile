@@ -44,7 +44,7 @@ COPY --from=wheel /wheels /wheels
 # The one package installed by name is the wheel built above (DL3013 cannot see its version).
 # hadolint ignore=DL3013
 RUN set -- /wheels/detmatch-*.whl \
-    && pip install "$1[serve]" \
+    && pip install "$1[serve,postgres]" \
     && rm -rf /wheels \
     && mkdir -p /models /store \
     && chown detmatch:detmatch /store
@@ -70,7 +70,7 @@ RUN pip install "torch==${TORCH_VERSION}" --index-url "https://download.pytorch.
 COPY --from=wheel /wheels /wheels
 # hadolint ignore=DL3013
 RUN set -- /wheels/detmatch-*.whl \
-    && pip install "$1[train,serve]" \
+    && pip install "$1[train,serve,postgres]" \
     && rm -rf /wheels \
     && mkdir -p /work \
     && chown detmatch:detmatch /work

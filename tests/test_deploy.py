@@ -45,7 +45,7 @@ def test_serve_target_is_torch_free_non_root_and_health_checked():
     assert list(stages)[-1] == "train", "the default target (the last stage) is train"
     serve = "\n".join(stages["serve"])
     assert "torch" not in serve.lower()
-    assert '"$1[serve]"' in serve
+    assert '"$1[serve,postgres]"' in serve  # .ci/run installs exactly this set
     user = re.search(r"^USER\s+(\d+)", serve, re.MULTILINE)
     assert user and int(user.group(1)) != 0
     assert re.search(r"^EXPOSE\s+50051$", serve, re.MULTILINE)
@@ -147,8 +147,10 @@ def test_every_flag_the_image_and_kubernetes_pass_to_serve_exists():
     known = {option for action in serve._actions for option in action.option_strings}
     cmd = next(line for line in dockerfile_stages()["serve"] if line.startswith("CMD"))
     image_flags = [a for a in re.findall(r'"([^"]+)"', cmd) if a.startswith("--")]
-    documents = {d["kind"]: d for d in yaml.safe_load_all(KUBERNETES.read_text())}
-    (container,) = documents["Deployment"]["spec"]["template"]["spec"]["containers"]
-    pod_flags = [a.split("=")[0] for a in container["args"] if a.startswith("--")]
-    assert image_flags and pod_flags
+    pod_flags = []
+    for manifest in (KUBERNETES, KUBERNETES.with_name("serve-shared-store.yaml")):
+        documents = {d["kind"]: d for d in yaml.safe_load_all(manifest.read_text())}
+        (container,) = documents["Deployment"]["spec"]["template"]["spec"]["containers"]
+        pod_flags += [a.split("=")[0] for a in container["args"] if a.startswith("--")]
+    assert image_flags and "--store-root" in pod_flags
     assert set(image_flags + pod_flags) <= known, set(image_flags + pod_flags) - known
