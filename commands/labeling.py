@@ -12,8 +12,10 @@ from pathlib import Path
 from commands.common import (
     add_frame_selection,
     add_overwrite_option,
+    add_store_options,
     frame_selection,
     prepare_output,
+    store_location,
 )
 
 # What `detmatch label --out` writes (removed first by --overwrite).
@@ -27,24 +29,34 @@ def label(args: argparse.Namespace) -> int:
     from serving.errors import StoreError
     from serving.labeler import Labeler
     from serving.offline import label_split
+    from serving.ray_labeling import label_with_ray
     from serving.store import LabelStore, validate_namespace
 
     if not args.out and not args.store:
         raise ValueError("give --out DIR (result files), --store DIR (the label store) or both")
     validate_namespace(args.namespace)
-    if args.out:
+    engine = _ray_engine(args)
+    if args.out and (engine is None or args.overwrite):  # the Ray engine resumes into --out
         prepare_output(Path(args.out), args.overwrite, LABEL_OUTPUTS)
     frames = frame_selection(args)
-    labeler = Labeler.from_repository(Path(args.repository), args.version)
+    labeler = None if engine else Labeler.from_repository(Path(args.repository), args.version)
     try:
-        store = LabelStore(Path(args.store), args.shard) if args.store else None
+        store = LabelStore(store_location(args), args.shard) if args.store else None
     except StoreError as error:  # the shard is held by a server or another `label`
-        raise ValueError(f"--store {args.store} --shard {args.shard}: {error}") from None
+        raise ValueError(f"--shard {args.shard}: {error}") from None
     try:
-        summary = label_split(
-            labeler, Path(args.data), frames, Path(args.out) if args.out else None,
-            args.tau_hung, store=store, namespace=args.namespace,
-        )  # fmt: skip
+        if engine is None:
+            summary = label_split(
+                labeler, Path(args.data), frames, Path(args.out) if args.out else None,
+                args.tau_hung, store=store, namespace=args.namespace,
+            )  # fmt: skip
+        else:
+            labeling = label_with_ray(
+                Path(args.repository), args.data, frames, Path(args.out) if args.out else None,
+                args.version, args.tau_hung, store=store, namespace=args.namespace,
+                engine=engine,
+            )  # fmt: skip
+            summary = labeling.summary
     finally:
         if store is not None:
             store.close()
@@ -61,7 +73,37 @@ def label(args: argparse.Namespace) -> int:
         f"{summary.labels} labels ({summary.matched} matched 2D-3D, {summary.lidar_only} "
         f"LiDAR-only) -> {'; '.join(where)}"
     )
-    return 0
+    return 0 if engine is None else _report_ray_labeling(labeling, args.out)
+
+
+def _ray_engine(args: argparse.Namespace):
+    """`--engine ray`'s settings (serving.ray_labeling.RayEngine); None for the in-process
+    engine, which takes none of them."""
+    given = {"address": args.address, "actors": args.actors, "batch_size": args.batch_size}
+    given = {name: value for name, value in given.items() if value is not None}
+    if args.engine != "ray":
+        if given:
+            raise ValueError(f"--{next(iter(given)).replace('_', '-')} goes with --engine ray")
+        return None
+    from serving.ray_labeling import RayEngine
+
+    return RayEngine(**given)
+
+
+def _report_ray_labeling(labeling, out: str | None) -> int:
+    """The Ray engine's resumed and failed frames; exit status 1 when frames failed."""
+    if labeling.resumed:
+        print(f"skipped {labeling.resumed} frames labeled by this model version already")
+    if not labeling.failed:
+        return 0
+    listed = f" (listed in {out}/labeling.json)" if out else ""
+    print(
+        f"{len(labeling.failed)} frames could not be read or labeled and were skipped{listed}:",
+        file=sys.stderr,
+    )
+    for failure in labeling.failed:
+        print(f"  {failure.frame_id}: {failure.reason}", file=sys.stderr)
+    return 1
 
 
 def _bearer_token(args: argparse.Namespace) -> str | None:
@@ -117,7 +159,7 @@ def serve(args: argparse.Namespace) -> int:
         grace_s=args.grace_s,
     )
     try:
-        run_server(Path(args.repository), Path(args.store), config, shard=args.shard)
+        run_server(Path(args.repository), store_location(args), config, shard=args.shard)
     except (OSError, StoreError) as error:  # a port in use, a shard held by another server
         raise ValueError(str(error)) from None
     return 0
@@ -180,16 +222,32 @@ def _add_label_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--data", required=True, help="KITTI-layout data set root")
     add_frame_selection(parser)
     parser.add_argument("--out", help="output directory (gets 3d/, 2d/, labels/)")
-    parser.add_argument(
-        "--store",
-        help="label store directory: store every frame and its labels as the service does "
-        "(what `detmatch retrain` reads); with or without --out",
+    add_store_options(
+        parser,
+        False,
+        "store every frame and its labels as the service does (what `detmatch "
+        "retrain` reads), with or without --out, into this label store",
     )
     parser.add_argument("--shard", default="offline", help="the label store shard written")
     parser.add_argument("--namespace", default="default",
                         help="the data set's namespace in the label store (keys are namespace + "
                         "frame id, so two data sets' 000000 do not collide)")  # fmt: skip
     parser.add_argument("--tau-hung", type=float, help="matching threshold (default: manifest's)")
+    parser.add_argument("--engine", choices=("inprocess", "ray"), default="inprocess",
+                        help="inprocess: this process labels the frames; ray: a pool of Ray "
+                        "actors on this machine or a cluster (the ray extra, docs/scale.md), "
+                        "--data may be a URL (s3://, file://), frames already labeled by the "
+                        "version are skipped")  # fmt: skip
+    parser.add_argument("--address",
+                        help="--engine ray: the cluster to join (auto: this node's; "
+                        "HOST:PORT: its head's GCS; default: $RAY_ADDRESS, else a local Ray "
+                        "instance)")  # fmt: skip
+    parser.add_argument("--actors", type=int,
+                        help="--engine ray: labeling actors, each loading the model once "
+                        "(default: 2)")  # fmt: skip
+    parser.add_argument(
+        "--batch-size", type=int, help="--engine ray: frames an actor labels per call (default: 8)"
+    )
     add_overwrite_option(parser)
     parser.set_defaults(handler=label)
 
@@ -201,7 +259,7 @@ def _add_serve_parser(commands: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("--repository", required=True, help="model repository (detmatch-export)")
-    parser.add_argument("--store", required=True, help="label store directory")
+    add_store_options(parser, True, "label store")
     parser.add_argument("--port", type=int, default=50051, help="0 picks a free port")
     parser.add_argument("--host", default=os.environ.get(HOST_ENV) or "127.0.0.1",
                         help=f"address to bind: 0.0.0.0 (or ::) listens on every interface, as a "

@@ -31,10 +31,11 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from detmatch.data.kitti import write_objects
+from detmatch.data.kitti import format_objects
 from detmatch.data.selection import FrameSelection
 from detmatch.files import atomic_write_bytes
-from serving.labeler import Labeler
+from detmatch.structures import Calibration
+from serving.labeler import FrameLabels, Labeler
 from serving.serialize import labels_to_json, labels_to_objects_2d, labels_to_objects_3d
 from serving.store import DEFAULT_NAMESPACE, LabelStore, StoreOutcome
 
@@ -79,20 +80,13 @@ def label_split(
         matched += int(result.labels.matched.sum())
         thresholds = result.thresholds
         if store is not None:
-            image = dataset.image_path(frame_id)
-            png = image.read_bytes() if image.suffix.lower() == ".png" else _png(frame.image)
+            png = image_png(dataset.image_path(frame_id), frame.image)
             put = store.put(frame_id, png, frame.points, frame.calib, result, namespace)
             stored += put.outcome != StoreOutcome.UNCHANGED
         if out is None:
             continue
-        write_objects(
-            out / "3d" / f"{frame_id}.txt",
-            labels_to_objects_3d(result, frame.calib),
-            decimals=4,
-        )
-        write_objects(out / "2d" / f"{frame_id}.txt", labels_to_objects_2d(result), decimals=4)
-        record = labels_to_json(frame_id, result)
-        atomic_write_bytes(out / "labels" / f"{frame_id}.json", json.dumps(record).encode())
+        for relative, data in result_files(frame_id, result, frame.calib).items():
+            atomic_write_bytes(out / relative, data)
     summary = LabelingSummary(
         frames=len(ids),
         labels=labels,
@@ -105,11 +99,41 @@ def label_split(
     )
     if out is None:
         return summary
-    record = {
+    record = labeling_record(
+        summary, labeler.path, str(Path(data_root).resolve()), dataset.split_dir, frames,
+        thresholds, store,
+    )  # fmt: skip
+    atomic_write_bytes(out / "labeling.json", (json.dumps(record, indent=2) + "\n").encode())
+    return summary
+
+
+def result_files(frame_id: str, result: FrameLabels, calib: Calibration) -> dict[str, bytes]:
+    """The bytes of a frame's result files by path relative to the output directory (3d/ID.txt,
+    2d/ID.txt, labels/ID.json; see the module docstring): what every labeling engine writes."""
+    return {
+        f"3d/{frame_id}.txt": format_objects(
+            labels_to_objects_3d(result, calib), decimals=4
+        ).encode(),
+        f"2d/{frame_id}.txt": format_objects(labels_to_objects_2d(result), decimals=4).encode(),
+        f"labels/{frame_id}.json": json.dumps(labels_to_json(frame_id, result)).encode(),
+    }
+
+
+def labeling_record(
+    summary: LabelingSummary,
+    model_path: Path,
+    data: str,
+    subset: str,
+    frames: FrameSelection,
+    thresholds: dict[str, float | None],
+    store: LabelStore | None,
+) -> dict:
+    """OUT/labeling.json's fields: the summary, the model, the frames' source and the store."""
+    return {
         **summary.__dict__,
-        "model_path": str(labeler.path.resolve()),
-        "data": str(Path(data_root).resolve()),
-        "subset": dataset.split_dir,
+        "model_path": str(model_path.resolve()),
+        "data": data,
+        "subset": subset,
         "frames_selected": frames.describe(),
         "split": frames.split,
         "thresholds": thresholds,
@@ -117,8 +141,12 @@ def label_split(
         if store is None
         else {"root": str(store.root.resolve()), "shard": store.shard},
     }
-    atomic_write_bytes(out / "labeling.json", (json.dumps(record, indent=2) + "\n").encode())
-    return summary
+
+
+def image_png(path: Path, pixels: np.ndarray) -> bytes:
+    """What the store keeps of a frame's image file: a PNG as it is, any other image (JPEG)
+    re-encoded as PNG from its decoded (H, W, 3) uint8 RGB pixels."""
+    return path.read_bytes() if path.suffix.lower() == ".png" else _png(pixels)
 
 
 def _png(pixels: np.ndarray) -> bytes:

@@ -154,3 +154,15 @@ def test_every_flag_the_image_and_kubernetes_pass_to_serve_exists():
         pod_flags += [a.split("=")[0] for a in container["args"] if a.startswith("--")]
     assert image_flags and "--store-root" in pod_flags
     assert set(image_flags + pod_flags) <= known, set(image_flags + pod_flags) - known
+
+
+def test_the_rayjob_runs_a_label_command_the_parser_accepts():
+    from commands.main import build_parser
+
+    path = REPO / "examples" / "kubernetes" / "label-rayjob.yaml"
+    job = yaml.safe_load(path.read_text())
+    assert job["kind"] == "RayJob"
+    command = job["spec"]["entrypoint"].split()
+    assert command[:2] == ["detmatch", "label"] and "--engine" in command
+    args = build_parser().parse_args(command[1:])
+    assert args.engine == "ray" and args.actors == 32

@@ -17,22 +17,36 @@ from retrain.data import (
 )
 from retrain.snapshot import store_snapshot
 from serving.store import DEFAULT_NAMESPACE
+from serving.store_index import SharedStore, store_files_root
 from serving.store_layout import frame_paths
 from tests.conftest import KITTI_SAMPLE
+from tests.postgres import postgres_server, postgres_url  # noqa: F401 - fixtures
 
 SOURCES = SourceSplits("labeled", "unlabeled", "val")
 
 
 def _stored(repository, data, store, *args: str) -> None:
-    assert main(["label", "--repository", str(repository), "--data", str(data),
-                 "--store", str(store), "--tau-hung", "50", *args]) == 0  # fmt: skip
+    where = ["--store", str(store)]
+    if isinstance(store, SharedStore):
+        where = ["--store", store.url, "--store-root", str(store.root)]
+    assert main(["label", "--repository", str(repository), "--data", str(data), *where,
+                 "--tau-hung", "50", *args]) == 0  # fmt: skip
+
+
+@pytest.fixture(params=["embedded", "shared"])
+def any_store(request, tmp_path):
+    """A store's directory, or a shared store (PostgreSQL index) whose files are there."""
+    if request.param == "embedded":
+        return tmp_path / "store"
+    return SharedStore(request.getfixturevalue("postgres_url"), tmp_path / "store")
 
 
 @pytest.mark.parametrize("stored_labels", ["pool", "labeled"])
 def test_round_data_gathers_every_shard_and_keeps_the_gate_out(
-    tmp_path, repository, round_data, stored_labels
+    tmp_path, repository, round_data, stored_labels, any_store
 ):
-    store = tmp_path / "store"
+    store = any_store
+    files = store_files_root(store)
     gate = read_image_set(round_data / "ImageSets" / "val.txt")
     # Shard a: real KITTI frames (ids other than the gate frame's: this store keys bare ids);
     # shard b: a gate frame sent to the store.
@@ -61,7 +75,7 @@ def test_round_data_gathers_every_shard_and_keeps_the_gate_out(
     assert read_image_set(out / "ImageSets" / f"{GATE_SPLIT}.txt") == gate
     dataset = KittiDataset(out)
     dataset.check_frames(labeled + unlabeled + gate)
-    kept = store / "shards" / "a" / frame_paths(DEFAULT_NAMESPACE, kitti[0])["label_2"]
+    kept = files / "shards" / "a" / frame_paths(DEFAULT_NAMESPACE, kitti[0])["label_2"]
     assert dataset.label_path(stored[0]).read_text() == kept.read_text()  # the stored labels
     assert len(read_objects(kept)) > 0
     assert dataset.points_path(gate[0]).is_symlink()  # the original frames are linked

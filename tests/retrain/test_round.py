@@ -41,8 +41,11 @@ from serving.repository import (
     training_checkpoint,
     verify_checksums,
 )
+from serving.store import list_frames
+from serving.store_index import SharedStore
 from tests.conftest import KITTI_SAMPLE, REPO
 from tests.grpc_service.conftest import serve_process
+from tests.postgres import postgres_server, postgres_url  # noqa: F401 - fixtures
 from tests.retrain.conftest import retrain_args, retrain_process
 
 
@@ -261,3 +264,31 @@ def test_a_round_under_torchrun_trains_on_every_rank_and_publishes_once(
     assert list_versions(repository) == ["000001", "000002"]
     assert served_version(repository) == "000002"
     assert len(list((repository / ".retrain" / ROUNDS).iterdir())) == 1
+
+
+def test_a_round_reads_a_shared_store_written_by_two_replicas(
+    tmp_path,
+    repository,
+    round_data,
+    capsys,
+    postgres_url,  # noqa: F811
+):
+    """`detmatch retrain --store postgresql://... --store-root DIR`: the frames two shards
+    wrote are one store to the round, and the round records that store's snapshot."""
+    shared = SharedStore(postgres_url, tmp_path / "store")
+    where = ["--store", shared.url, "--store-root", str(shared.root)]
+    for shard, frames in (("a", "000000"), ("b", "000001")):
+        ids = tmp_path / f"{shard}.txt"
+        ids.write_text(frames + "\n")
+        assert main(["label", "--repository", str(repository), "--data", str(KITTI_SAMPLE),
+                     "--ids-file", str(ids), *where, "--shard", shard]) == 0  # fmt: skip
+    assert {r.shard for r in list_frames(shared)} == {"a", "b"}
+    capsys.readouterr()
+    args = retrain_args(shared.url, round_data, repository, "--store-root", str(shared.root),
+                        "--set", "retrain.steps=2")  # fmt: skip
+    assert main(args) == 0
+    newest = list_versions(repository)[-1]
+    assert newest == "000002"
+    record = load_manifest(repository / newest).retraining
+    assert record.data.stored == 2
+    assert record.data.store_snapshot == store_snapshot(shared).id
