@@ -12,11 +12,11 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from commands import data, evaluate, labeling, retrain, store, train
+from commands import data, evaluate, labeling, retrain, review, store, train
 from commands.common import add_version_option, show_defaults
 
 # The order `detmatch --help` lists them in.
-GROUPS = (data, train, labeling, retrain, store, evaluate)
+GROUPS = (data, train, labeling, retrain, store, review, evaluate)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,3 +22,10 @@ CONSISTENCY_GIOU_WEIGHT = 2.0
 # (ImageNet's statistics; multiply by 255 for [0, 255] pixels).
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 IMAGE_STD = (0.229, 0.224, 0.225)
+
+# `detmatch review export` (serving.review): its formats and frame selections, and the path
+# Label Studio serves files under LOCAL_FILES_DOCUMENT_ROOT at (here so that building the
+# command line imports nothing of the service).
+REVIEW_FORMATS = ("cvat-3d", "kitti-raw", "label-studio")
+REVIEW_SELECTIONS = ("all", "random", "least-confident")
+LABEL_STUDIO_LOCAL_FILES = "/data/local-files/?d="

@@ -156,7 +156,7 @@ def export_store(
     entries = []
     for record in records:
         name = names[record.key]
-        copied = _copy_frame(root, record, out, name)
+        copied = _copy_frame(store, record, out, name)
         entries.append({"id": name, "namespace": copied.namespace, "frame_id": copied.frame_id,
                         "shard": copied.shard, "model_version": copied.model_version,
                         "stored_at": copied.stored_at, "split": splits[record.key]})  # fmt: skip
@@ -205,9 +205,11 @@ def _balance(
             splits[pick(records, key=position).key] = side
 
 
-def _copy_frame(root: Path, record: StoredFrame, out: Path, name: str) -> StoredFrame:
-    """Copy a frame's files under its exported name, each checked against its checksum; a
-    mismatch (a replacement in flight) re-reads the record."""
+def read_frame(store: Store, record: StoredFrame) -> tuple[StoredFrame, dict[str, bytes]]:
+    """A stored frame's files (path relative to its shard -> bytes), each checked against its
+    checksum; a mismatch (a replacement in flight) re-reads the record. Returns the record
+    the files are of."""
+    root = store_files_root(store)
     for _ in range(READ_RETRIES):
         contents = {}
         for relative, digest in record.files.items():
@@ -220,16 +222,22 @@ def _copy_frame(root: Path, record: StoredFrame, out: Path, name: str) -> Stored
                 break
             contents[relative] = data
         else:
-            for relative, data in contents.items():
-                inner = Path(relative)  # namespaces/<ns>/<dir>/<file>; schema 1: <dir>/<file>
-                if inner.parts[0] == NAMESPACES_DIR:
-                    inner = Path(*inner.parts[2:])
-                atomic_write_bytes(out / inner.parent / f"{name}{inner.suffix}", data)
-            return record
+            return record, contents
         time.sleep(0.05)
-        fresh = [r for r in list_frames(root, record.namespace) if r.key == record.key]
+        fresh = [r for r in list_frames(store, record.namespace) if r.key == record.key]
         record = fresh[0] if fresh else record
     raise ValueError(
         f"frame {record.namespace}/{record.frame_id} of shard {record.shard}: its files do not "
         "match its checksums; run `detmatch serve` on that shard once to recover it"
     )
+
+
+def _copy_frame(store: Store, record: StoredFrame, out: Path, name: str) -> StoredFrame:
+    """Copy a frame's files under its exported name, each checked against its checksum."""
+    record, contents = read_frame(store, record)
+    for relative, data in contents.items():
+        inner = Path(relative)  # namespaces/<ns>/<dir>/<file>; schema 1: <dir>/<file>
+        if inner.parts[0] == NAMESPACES_DIR:
+            inner = Path(*inner.parts[2:])
+        atomic_write_bytes(out / inner.parent / f"{name}{inner.suffix}", data)
+    return record

@@ -1,0 +1,61 @@
+"""Human review of the auto-labels: `detmatch review export` (no torch; CVAT's formats need
+the review extra, datumaro)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from commands.common import add_overwrite_option, add_store_options, prepare_output, store_location
+from detmatch.constants import LABEL_STUDIO_LOCAL_FILES, REVIEW_FORMATS, REVIEW_SELECTIONS
+
+# What `detmatch review export` writes into --out (removed first by --overwrite).
+REVIEW_OUTPUTS = (
+    "ds0", "meta.json", "key_id_map.json", "tracklet_labels.xml", "frame_list.txt",
+    "velodyne_points", "image_00", "images", "tasks.json", "label_config.xml", "review.json",
+)  # fmt: skip
+
+
+def review_export(args: argparse.Namespace) -> int:
+    from serving.review import export_review, select_frames
+
+    store = store_location(args)
+    selected = select_frames(store, args.select, args.budget, args.seed, args.namespace,
+                             args.version)  # fmt: skip
+    prepare_output(Path(args.out), args.overwrite, REVIEW_OUTPUTS)
+    summary = export_review(store, Path(args.out), args.format, selected, args.image_url_prefix)
+    print(
+        f"exported {summary.frames} frames ({summary.labels} labels) for review as "
+        f"{summary.format} to {summary.out}; why each frame: {summary.out}/review.json"
+    )
+    return 0
+
+
+def add_parsers(commands: argparse._SubParsersAction) -> None:
+    review = commands.add_parser("review", help="the auto-labels in front of human reviewers")
+    actions = review.add_subparsers(dest="review_command", required=True, metavar="ACTION")
+    parser = actions.add_parser(
+        "export",
+        help="stored frames and their labels for review: CVAT 3D (Sly Point Cloud with the "
+        "camera image and calibration; KITTI Raw) or Label Studio tasks with pre-annotations",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    add_store_options(parser, True, "label store")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--format", required=True, choices=REVIEW_FORMATS,
+                        help="cvat-3d: Sly Point Cloud 1.0 (CVAT's 3D import with the camera's "
+                        "calibration); kitti-raw: Kitti Raw Format 1.0; label-studio: tasks.json "
+                        "and label_config.xml")  # fmt: skip
+    parser.add_argument("--select", default="all", choices=REVIEW_SELECTIONS,
+                        help="all frames of the filters; a random audit sample; or the frames "
+                        "the model is least sure of (most LiDAR-only labels, then the highest "
+                        "matching cost); the last two need --budget")  # fmt: skip
+    parser.add_argument("--budget", type=int, help="frames to select")
+    parser.add_argument("--seed", type=int, default=0, help="the random sample's seed")
+    parser.add_argument("--namespace", help="only this namespace's frames")
+    parser.add_argument("--version", help="only frames labeled by this model version")
+    parser.add_argument("--image-url-prefix", default=LABEL_STUDIO_LOCAL_FILES,
+                        help="label-studio: what the tasks' image URLs start with (Label "
+                        "Studio's local files, or your bucket's URL)")  # fmt: skip
+    add_overwrite_option(parser)
+    parser.set_defaults(handler=review_export)

@@ -1,0 +1,319 @@
+"""Auto-labels out for human review (`detmatch review export`): CVAT's 3D formats (Sly Point
+Cloud, with the camera image and its calibration; KITTI Raw) and Label Studio's task import
+format (the image with 2D pre-annotations). Torch-free; CVAT's formats are written with
+`datumaro` (the `review` extra), the library CVAT's own import uses.
+
+Which frames (`select_frames`): every stored frame of the filters (namespace, model version),
+a seeded random audit sample of --budget, or the --budget frames the model is least sure of:
+most LiDAR-only labels (detections the camera did not confirm), then the highest matching
+cost of a matched label. Each selected frame carries the reason it was picked.
+
+Every cuboid and box carries its label's provenance (matched / LiDAR-only), scores, matching
+cost and the model version as attributes, so a reviewer can sort and filter by doubt.
+
+Coordinates. A Sly Point Cloud cuboid is the label's LiDAR-frame box: position = the gravity
+centre (x, y, z), scale = (l, w, h), rotation = (0, 0, yaw), as the store keeps it. datumaro
+rounds cuboids to 2 decimals unless told otherwise (`COORDINATE_ROUNDING_DIGITS`), and writes
+zeros for the related image's camera matrices: this module keeps 6 decimals and writes the
+matrices itself, intrinsic = P2's left 3 x 3 block K, extrinsic = K^-1 P2 R0_rect
+Tr_velo_to_cam (3 x 4, LiDAR -> camera 2), so that K . extrinsic projects a LiDAR point
+exactly as P2 . R0_rect . Tr_velo_to_cam does.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import random
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from detmatch.constants import LABEL_STUDIO_LOCAL_FILES, REVIEW_FORMATS, REVIEW_SELECTIONS
+from detmatch.data.kitti import read_calib
+from detmatch.files import atomic_write_bytes
+from detmatch.structures import Calibration
+from serving.store_export import Store, list_frames, read_frame
+from serving.store_layout import FRAME_FILES, StoredFrame
+
+FORMATS, SELECTIONS = REVIEW_FORMATS, REVIEW_SELECTIONS
+DATUMARO_FORMAT = {"cvat-3d": "sly_pointcloud", "kitti-raw": "kitti_raw"}
+ROUNDING_DIGITS = 6
+MANIFEST = "review.json"
+LOCAL_FILES_PREFIX = LABEL_STUDIO_LOCAL_FILES
+
+
+@dataclass(frozen=True)
+class Selected:
+    record: StoredFrame
+    labels: dict[str, Any]  # the stored labels/ID.json
+    reason: str
+
+
+@dataclass(frozen=True)
+class ReviewExport:
+    format: str
+    frames: int
+    labels: int
+    out: Path
+
+
+def item_id(record: StoredFrame) -> str:
+    """A frame's id in a review set: NAMESPACE__ID, unique across namespaces, and what an
+    import maps back to the stored key."""
+    return f"{record.namespace}__{record.frame_id}"
+
+
+def select_frames(
+    store: Store,
+    select: str = "all",
+    budget: int | None = None,
+    seed: int = 0,
+    namespace: str | None = None,
+    version: str | None = None,
+) -> list[Selected]:
+    """The frames to review, in the order a reviewer should see them (see the module
+    docstring)."""
+    if select not in SELECTIONS:
+        raise ValueError(f"--select {select!r}: choose from {', '.join(SELECTIONS)}")
+    if select != "all" and (budget is None or budget < 1):
+        raise ValueError(f"--select {select} needs --budget N (N >= 1)")
+    records = [
+        r for r in list_frames(store, namespace) if version is None or r.model_version == version
+    ]
+    if not records:
+        raise ValueError(f"no stored frame matches (store {store}, namespace {namespace}, "
+                         f"version {version})")  # fmt: skip
+    if select == "random":
+        records = sorted(random.Random(seed).sample(records, min(budget, len(records))),
+                         key=lambda r: r.key)  # fmt: skip
+        return [Selected(r, _labels(store, r), f"random audit sample (seed {seed})")
+                for r in records]  # fmt: skip
+    chosen = [Selected(r, _labels(store, r), "") for r in records]
+    if select == "all":
+        return [Selected(s.record, s.labels, "every frame of the filters") for s in chosen]
+    doubt = {}
+    for s in chosen:
+        lidar_only = sum(label["provenance"] != "matched" for label in s.labels["labels"])
+        costs = [label["cost"] for label in s.labels["labels"] if label["cost"] is not None]
+        doubt[s.record.key] = (lidar_only, max(costs, default=0.0))
+    chosen.sort(key=lambda s: (-doubt[s.record.key][0], -doubt[s.record.key][1], s.record.key))
+    return [
+        Selected(
+            s.record,
+            s.labels,
+            f"{doubt[s.record.key][0]} LiDAR-only labels, highest "
+            f"matching cost {doubt[s.record.key][1]:.3f}",
+        )  # fmt: skip
+        for s in chosen[:budget]
+    ]
+
+
+def _labels(store: Store, record: StoredFrame) -> dict[str, Any]:
+    relative = next(r for r in record.files if r.endswith(f"/{record.frame_id}.json"))
+    _, contents = read_frame(store, record)
+    return json.loads(contents[relative])
+
+
+def export_review(
+    store: Store,
+    out: str | Path,
+    format: str,
+    selected: list[Selected],
+    image_url_prefix: str = LOCAL_FILES_PREFIX,
+) -> ReviewExport:
+    """Write the selected frames for review in `format` under out (see the module docstring),
+    with out/review.json listing each frame's id, key, model version and reason."""
+    if format not in FORMATS:
+        raise ValueError(f"--format {format!r}: choose from {', '.join(FORMATS)}")
+    out = Path(out)
+    frames = [_frame(store, s) for s in selected]
+    if format == "label-studio":
+        labels = _label_studio(frames, out, image_url_prefix)
+    else:
+        labels = _cvat(frames, out, DATUMARO_FORMAT[format])
+    manifest = {
+        "format": format,
+        "frames": [{"id": f.id, "namespace": f.selected.record.namespace,
+                    "frame_id": f.selected.record.frame_id,
+                    "model_version": f.selected.record.model_version,
+                    "reason": f.selected.reason} for f in frames],
+    }  # fmt: skip
+    atomic_write_bytes(out / MANIFEST, (json.dumps(manifest, indent=2) + "\n").encode())
+    return ReviewExport(format, len(frames), labels, out)
+
+
+@dataclass(frozen=True)
+class _Frame:
+    id: str
+    selected: Selected
+    image_png: bytes
+    points: np.ndarray
+    calib: Calibration
+
+
+def _frame(store: Store, selected: Selected) -> _Frame:
+    record, contents = read_frame(store, selected.record)
+
+    def content(kind: str) -> bytes:
+        directory, suffix = FRAME_FILES[kind]
+        return next(v for k, v in contents.items()
+                    if k.endswith(f"{directory}/{record.frame_id}{suffix}"))  # fmt: skip
+
+    with tempfile.NamedTemporaryFile("wb", suffix=".txt") as handle:
+        handle.write(content("calib"))
+        handle.flush()
+        calib = read_calib(handle.name)
+    points = np.frombuffer(content("points"), dtype="<f4").reshape(-1, 4)
+    return _Frame(item_id(record), selected, content("image"), points, calib)
+
+
+def camera_matrices(calib: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """(intrinsic 3 x 3, extrinsic 3 x 4 LiDAR -> camera 2) with K . E = P2 . R0 . Tr."""
+    intrinsic = calib.P2[:, :3]
+    rectify, velo = np.eye(4), np.eye(4)
+    rectify[:3, :3] = calib.R0_rect
+    velo[:3, :] = calib.Tr_velo_to_cam
+    extrinsic = np.linalg.solve(intrinsic, calib.P2 @ rectify @ velo)
+    return intrinsic, extrinsic
+
+
+def write_pcd(path: Path, points: np.ndarray) -> None:
+    """A binary PCD 0.7 file of (N, 4) x y z intensity float32 (what CVAT uploads)."""
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z intensity\n"
+        "SIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+        "DATA binary\n"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header.encode() + np.ascontiguousarray(points, dtype="<f4").tobytes())
+
+
+def _attributes(label: dict[str, Any], version: str) -> dict[str, Any]:
+    return {
+        "provenance": label["provenance"],
+        "score_3d": round(float(label["score_3d"]), 4),
+        "score_2d": -1.0 if label["score_2d"] is None else round(float(label["score_2d"]), 4),
+        "cost": -1.0 if label["cost"] is None else round(float(label["cost"]), 4),
+        "model_version": version,
+    }
+
+
+def _cvat(frames: list[_Frame], out: Path, datumaro_format: str) -> int:
+    try:
+        import datumaro as dm
+        from datumaro.components import annotation
+        from datumaro.components.media import Image as DmImage
+        from datumaro.components.media import PointCloud
+    except ImportError:
+        raise ValueError(
+            "CVAT's formats are written with datumaro: pip install 'detmatch[review]'"
+        ) from None
+    annotation.COORDINATE_ROUNDING_DIGITS = ROUNDING_DIGITS
+    classes = sorted({lb["class_3d"] for f in frames for lb in f.selected.labels["labels"]})
+    items, count = [], 0
+    with tempfile.TemporaryDirectory(prefix="detmatch-review-") as scratch:
+        for index, frame in enumerate(frames):
+            pcd, png = Path(scratch) / f"{frame.id}.pcd", Path(scratch) / f"{frame.id}.png"
+            write_pcd(pcd, frame.points)
+            png.write_bytes(frame.image_png)
+            cuboids = []
+            for label in frame.selected.labels["labels"]:
+                x, y, z, length, width, height, yaw = label["box_3d"]
+                cuboids.append(annotation.Cuboid3d(
+                    position=[x, y, z], rotation=[0.0, 0.0, yaw],
+                    scale=[length, width, height], label=classes.index(label["class_3d"]),
+                    id=count, attributes={**_attributes(label, frame.selected.record
+                                                        .model_version), "track_id": count},
+                ))  # fmt: skip
+                count += 1
+            items.append(dm.DatasetItem(
+                id=frame.id, annotations=cuboids, attributes={"frame": index},
+                media=PointCloud.from_file(path=str(pcd),
+                                           extra_images=[DmImage.from_file(path=str(png))]),
+            ))  # fmt: skip
+        dataset = dm.Dataset.from_iterable(
+            items, categories=classes, media_type=PointCloud
+        )  # fmt: skip
+        options = {"allow_undeclared_attrs": True} if datumaro_format == "sly_pointcloud" else {}
+        dataset.export(str(out), datumaro_format, save_media=True, **options)
+    if datumaro_format == "sly_pointcloud":
+        for frame in frames:
+            _write_camera(out, frame)
+    return count
+
+
+def _write_camera(out: Path, frame: _Frame) -> None:
+    """The related image's calibration JSON, which datumaro leaves at zeros."""
+    directory = out / "ds0" / "related_images" / f"{frame.id}_pcd"
+    (image,) = [p for p in directory.iterdir() if p.suffix.lower() != ".json"]
+    intrinsic, extrinsic = camera_matrices(frame.calib)
+    height, width = Image.open(io.BytesIO(frame.image_png)).size[::-1]
+    meta = {
+        "name": image.name,
+        "meta": {
+            "deviceId": "CAM_2",
+            "sensorsData": {
+                "extrinsicMatrix": [round(float(v), 9) for v in extrinsic.reshape(-1)],
+                "intrinsicMatrix": [round(float(v), 9) for v in intrinsic.reshape(-1)],
+            },
+            "width": width,
+            "height": height,
+        },
+    }
+    atomic_write_bytes(image.with_name(image.name + ".json"), json.dumps(meta, indent=2).encode())
+
+
+def label_studio_config(classes: list[str]) -> str:
+    """The labeling interface for the exported tasks: boxes of the product's classes."""
+    labels = "\n".join(f'    <Label value="{name}"/>' for name in classes)
+    return (
+        '<View>\n  <Image name="image" value="$image"/>\n'
+        f'  <RectangleLabels name="label" toName="image">\n{labels}\n'
+        "  </RectangleLabels>\n</View>\n"
+    )
+
+
+def _label_studio(frames: list[_Frame], out: Path, prefix: str) -> int:
+    tasks, count = [], 0
+    classes = sorted({lb["class_2d"] for f in frames for lb in f.selected.labels["labels"]
+                      if lb["class_2d"] is not None})  # fmt: skip
+    for frame in frames:
+        relative = f"images/{frame.id}.png"
+        atomic_write_bytes(out / relative, frame.image_png)
+        width, height = Image.open(io.BytesIO(frame.image_png)).size
+        results, scores = [], []
+        for index, label in enumerate(frame.selected.labels["labels"]):
+            if label["box_2d"] is None:
+                continue
+            x1, y1, x2, y2 = label["box_2d"]
+            results.append({
+                "id": f"{frame.id}-{index}", "type": "rectanglelabels",
+                "from_name": "label", "to_name": "image",
+                "original_width": width, "original_height": height, "image_rotation": 0,
+                "value": {"x": 100 * x1 / width, "y": 100 * y1 / height,
+                          "width": 100 * (x2 - x1) / width, "height": 100 * (y2 - y1) / height,
+                          "rotation": 0, "rectanglelabels": [label["class_2d"]]},
+                "score": float(label["score_2d"]),
+                "meta": {"text": [json.dumps(_attributes(label, frame.selected.record
+                                                         .model_version))]},
+            })  # fmt: skip
+            scores.append(float(label["score_2d"]))
+            count += 1
+        record = frame.selected.record
+        tasks.append({
+            "data": {"image": f"{prefix}{relative}", "frame": frame.id,
+                     "namespace": record.namespace, "frame_id": record.frame_id,
+                     "reason": frame.selected.reason},
+            "predictions": [{"model_version": record.model_version,
+                             "score": float(np.mean(scores)) if scores else 0.0,
+                             "result": results}],
+        })  # fmt: skip
+    atomic_write_bytes(out / "tasks.json", (json.dumps(tasks, indent=2) + "\n").encode())
+    atomic_write_bytes(out / "label_config.xml", label_studio_config(classes).encode())
+    return count

@@ -1,0 +1,153 @@
+"""`detmatch review export`: CVAT 3D sets that datumaro's own importers read back (boxes within
+1e-4 m / rad of the stored labels, the related image, a calibration that projects as P2 . R0 .
+Tr does), Label Studio tasks whose pre-annotations are the stored 2D boxes, and the frame
+selections (every frame, a seeded audit sample, the frames the model is least sure of)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+if os.environ.get("DETMATCH_REQUIRE_REVIEW"):  # .ci/run installs the review extra
+    import datumaro as dm
+else:
+    dm = pytest.importorskip("datumaro", reason="the review extra: pip install -e '.[review]'")
+
+from commands.main import main  # noqa: E402
+from detmatch.data.kitti import KittiDataset  # noqa: E402
+from serving.review import camera_matrices, export_review, select_frames  # noqa: E402
+from serving.store import LabelStore, list_frames  # noqa: E402
+from tests.conftest import KITTI_SAMPLE  # noqa: E402
+from tests.onnx_fixtures import exported_repository, served_labeler  # noqa: E402, F401
+from tests.serving.store_helpers import put_frame  # noqa: E402
+
+FRAMES = ("000000", "000001", "000002")
+
+
+@pytest.fixture
+def store(tmp_path, served_labeler):  # noqa: F811
+    root = tmp_path / "store"
+    with LabelStore(root, "a") as writer:
+        for frame in FRAMES:
+            put_frame(writer, served_labeler, frame, source=frame)
+        put_frame(writer, served_labeler, "000000", source="000000", namespace="site-b")
+    return root
+
+
+def _stored_boxes(store) -> dict[str, list[tuple[str, list[float]]]]:
+    frames = select_frames(store)
+    return {
+        f"{s.record.namespace}__{s.record.frame_id}": [
+            (label["class_3d"], label["box_3d"]) for label in s.labels["labels"]
+        ]
+        for s in frames
+    }
+
+
+def test_a_cvat_3d_export_imports_with_datumaro_as_the_stored_labels(store, tmp_path):
+    from datumaro.components import annotation
+
+    out = tmp_path / "cvat"
+    summary = export_review(store, out, "cvat-3d", select_frames(store))
+    stored = _stored_boxes(store)
+    assert summary.frames == 4 and summary.labels == sum(map(len, stored.values())) > 0
+    annotation.COORDINATE_ROUNDING_DIGITS = 6
+    dataset = dm.Dataset.import_from(str(out), "sly_pointcloud")
+    classes = dataset.categories()[dm.AnnotationType.label]
+    assert {item.id for item in dataset} == set(stored)
+    for item in dataset:
+        got = sorted((classes[c.label].name, [*c.position, *c.scale, c.rotation[2]],
+                      c.attributes) for c in item.annotations)  # fmt: skip
+        want = sorted(stored[item.id])
+        assert len(got) == len(want)
+        for (name, box, attributes), (name_want, box_want) in zip(got, want, strict=True):
+            assert name == name_want
+            np.testing.assert_allclose(box, box_want, atol=1e-4)
+            assert attributes["provenance"] in ("matched", "lidar_only_confident",
+                                                "lidar_only_outside_view")  # fmt: skip
+            assert attributes["model_version"] == "000001"
+        (image,) = item.media.extra_images
+        assert image.data.shape[2] == 3
+    # the related image's calibration: K . E projects LiDAR points as P2 . R0 . Tr does
+    calib = KittiDataset(KITTI_SAMPLE).load_frame("000001").calib
+    (meta_file,) = (out / "ds0" / "related_images" / "default__000001_pcd").glob("*.json")
+    meta = json.loads(meta_file.read_text())["meta"]["sensorsData"]
+    intrinsic = np.array(meta["intrinsicMatrix"]).reshape(3, 3)
+    extrinsic = np.array(meta["extrinsicMatrix"]).reshape(3, 4)
+    points = np.array([[10.0, 1.0, -1.0, 1.0], [30.0, -4.0, 0.5, 1.0]])
+    projected = (intrinsic @ extrinsic @ points.T).T
+    projected = projected[:, :2] / projected[:, 2:]
+    rectify, velo = np.eye(4), np.eye(4)
+    rectify[:3, :3], velo[:3, :] = calib.R0_rect, calib.Tr_velo_to_cam
+    reference = (calib.P2 @ rectify @ velo @ points.T).T
+    np.testing.assert_allclose(projected, reference[:, :2] / reference[:, 2:], atol=1e-3)
+    assert not np.allclose(camera_matrices(calib)[1], 0)
+
+
+def test_a_kitti_raw_export_imports_with_datumaro(store, tmp_path):
+    from datumaro.components import annotation
+
+    out = tmp_path / "raw"
+    export_review(store, out, "kitti-raw", select_frames(store, namespace="default"))
+    annotation.COORDINATE_ROUNDING_DIGITS = 6
+    dataset = dm.Dataset.import_from(str(out), "kitti_raw")
+    stored = _stored_boxes(store)
+    assert {item.id for item in dataset} == {k for k in stored if k.startswith("default__")}
+    for item in dataset:
+        got = sorted([*c.position, *c.scale, c.rotation[2]] for c in item.annotations)
+        want = sorted(box for _, box in stored[item.id])
+        np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_label_studio_tasks_carry_the_stored_2d_boxes_as_predictions(store, tmp_path):
+    out = tmp_path / "ls"
+    export_review(store, out, "label-studio", select_frames(store))
+    tasks = json.loads((out / "tasks.json").read_text())
+    assert len(tasks) == 4 and "RectangleLabels" in (out / "label_config.xml").read_text()
+    by_frame = {s.record.namespace + "__" + s.record.frame_id: s for s in select_frames(store)}
+    for task in tasks:
+        selected = by_frame[task["data"]["frame"]]
+        assert task["data"]["image"] == f"/data/local-files/?d=images/{task['data']['frame']}.png"
+        assert (out / "images" / f"{task['data']['frame']}.png").is_file()
+        (prediction,) = task["predictions"]
+        assert prediction["model_version"] == "000001"
+        boxes = [lb for lb in selected.labels["labels"] if lb["box_2d"] is not None]
+        assert len(prediction["result"]) == len(boxes)
+        for result, label in zip(prediction["result"], boxes, strict=True):
+            value = result["value"]
+            width, height = result["original_width"], result["original_height"]
+            x1, y1 = value["x"] * width / 100, value["y"] * height / 100
+            x2, y2 = x1 + value["width"] * width / 100, y1 + value["height"] * height / 100
+            np.testing.assert_allclose([x1, y1, x2, y2], label["box_2d"], atol=1e-6)
+            assert value["rectanglelabels"] == [label["class_2d"]]
+
+
+def test_selections_pick_an_audit_sample_and_the_least_sure_frames(store, tmp_path, capsys):
+    every = select_frames(store)
+    assert len(every) == 4
+    sample = select_frames(store, "random", budget=2, seed=3)
+    assert [s.record.key for s in sample] == [s.record.key for s in select_frames(
+        store, "random", budget=2, seed=3)]  # fmt: skip
+    assert len(sample) == 2 and "random audit sample (seed 3)" in sample[0].reason
+    doubt = select_frames(store, "least-confident", budget=4)
+    lidar_only = [sum(lb["provenance"] != "matched" for lb in s.labels["labels"]) for s in doubt]
+    assert lidar_only == sorted(lidar_only, reverse=True)
+    assert doubt[0].reason.startswith(f"{lidar_only[0]} LiDAR-only labels")
+    with pytest.raises(ValueError, match="needs --budget"):
+        select_frames(store, "random")
+    with pytest.raises(ValueError, match="no stored frame matches"):
+        select_frames(store, version="000009")
+    assert len(select_frames(store, namespace="site-b")) == 1
+
+    out = tmp_path / "cli"
+    assert main(["review", "export", "--store", str(store), "--out", str(out), "--format",
+                 "cvat-3d", "--select", "least-confident", "--budget", "2"]) == 0  # fmt: skip
+    manifest = json.loads((out / "review.json").read_text())
+    assert [f["id"] for f in manifest["frames"]] == [
+        f"{s.record.namespace}__{s.record.frame_id}" for s in doubt[:2]
+    ]
+    assert "exported 2 frames" in capsys.readouterr().out
+    assert len(list_frames(store)) == 4  # the store is only read
