@@ -47,9 +47,11 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
                         "calibration); kitti-raw: Kitti Raw Format 1.0; label-studio: tasks.json "
                         "and label_config.xml")  # fmt: skip
     parser.add_argument("--select", default="all", choices=REVIEW_SELECTIONS,
-                        help="all frames of the filters; a random audit sample; or the frames "
-                        "the model is least sure of (most LiDAR-only labels, then the highest "
-                        "matching cost); the last two need --budget")  # fmt: skip
+                        help="all frames of the filters; a random audit sample; the frames "
+                        "whose labels have the lowest 3D scores; or the frames where the camera "
+                        "and the LiDAR disagree most (camera-only detections, unconfirmed "
+                        "LiDAR-only labels in view, class disagreements, weak matches); all "
+                        "but the first need --budget")  # fmt: skip
     parser.add_argument("--budget", type=int, help="frames to select")
     parser.add_argument("--seed", type=int, default=0, help="the random sample's seed")
     parser.add_argument("--namespace", help="only this namespace's frames")

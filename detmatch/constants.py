@@ -27,5 +27,5 @@ IMAGE_STD = (0.229, 0.224, 0.225)
 # Label Studio serves files under LOCAL_FILES_DOCUMENT_ROOT at (here so that building the
 # command line imports nothing of the service).
 REVIEW_FORMATS = ("cvat-3d", "kitti-raw", "label-studio")
-REVIEW_SELECTIONS = ("all", "random", "least-confident")
+REVIEW_SELECTIONS = ("all", "random", "least-confident", "disagreement")
 LABEL_STUDIO_LOCAL_FILES = "/data/local-files/?d="

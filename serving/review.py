@@ -4,9 +4,11 @@ format (the image with 2D pre-annotations). Torch-free; CVAT's formats are writt
 `datumaro` (the `review` extra), the library CVAT's own import uses.
 
 Which frames (`select_frames`): every stored frame of the filters (namespace, model version),
-a seeded random audit sample of --budget, or the --budget frames the model is least sure of:
-most LiDAR-only labels (detections the camera did not confirm), then the highest matching
-cost of a matched label. Each selected frame carries the reason it was picked.
+a seeded random audit sample of --budget, the --budget frames whose labels have the lowest
+mean 3D score (`low_confidence`: what a single-modality labeler can rank by), or the --budget
+frames where the 2D and 3D teachers disagree most (`disagreement`: camera detections no label
+took, LiDAR-only labels in view, class disagreements, weak matches). Each selected frame
+carries the reason it was picked.
 
 Every cuboid and box carries its label's provenance (matched / LiDAR-only), scores, matching
 cost and the model version as attributes, so a reviewer can sort and filter by doubt.
@@ -96,27 +98,48 @@ def select_frames(
     chosen = [Selected(r, _labels(store, r), "") for r in records]
     if select == "all":
         return [Selected(s.record, s.labels, "every frame of the filters") for s in chosen]
-    doubt = {}
-    for s in chosen:
-        lidar_only = sum(label["provenance"] != "matched" for label in s.labels["labels"])
-        costs = [label["cost"] for label in s.labels["labels"] if label["cost"] is not None]
-        doubt[s.record.key] = (lidar_only, max(costs, default=0.0))
-    chosen.sort(key=lambda s: (-doubt[s.record.key][0], -doubt[s.record.key][1], s.record.key))
-    return [
-        Selected(
-            s.record,
-            s.labels,
-            f"{doubt[s.record.key][0]} LiDAR-only labels, highest "
-            f"matching cost {doubt[s.record.key][1]:.3f}",
-        )  # fmt: skip
-        for s in chosen[:budget]
-    ]
+    rank = disagreement if select == "disagreement" else low_confidence
+    ranked = sorted(((rank(s.labels), s) for s in chosen),
+                    key=lambda pair: (-pair[0][0], pair[1].record.key))  # fmt: skip
+    return [Selected(s.record, s.labels, reason) for (_, reason), s in ranked[:budget]]
+
+
+def low_confidence(labels: dict[str, Any]) -> tuple[float, str]:
+    """A single-modality ranking, what a 3D auto-labeler alone can do: 1 - the mean 3D score
+    of the frame's labels (0 for a frame without labels)."""
+    scores = [label["score_3d"] for label in labels["labels"]]
+    mean = float(np.mean(scores)) if scores else 1.0
+    return 1.0 - mean, f"mean 3D score {mean:.3f} of {len(scores)} labels"
+
+
+def disagreement(labels: dict[str, Any]) -> tuple[float, str]:
+    """Where the two teachers disagree, so the labels are most likely wrong: 2D detections no
+    label took (the camera saw something the LiDAR labels lack), LiDAR-only labels inside the
+    camera's view (the camera did not confirm them), matched pairs whose classes differ, and
+    matched pairs whose matching cost is over half of tau_hung (boxes that barely agree).
+    The score is their count; the reason names each."""
+    records = labels["labels"]
+    tau_hung = labels["thresholds"].get("tau_hung") or 1.0
+    counts = {
+        "camera-only detections": len(labels.get("unmatched_2d", [])),
+        "unconfirmed LiDAR-only labels in view": sum(
+            r["provenance"] == "lidar_only_confident" for r in records
+        ),
+        "class disagreements": sum(
+            r["provenance"] == "matched" and r["class_2d"] != r["class_3d"] for r in records
+        ),
+        "weak matches": sum(
+            r["provenance"] == "matched" and r["cost"] > tau_hung / 2 for r in records
+        ),
+    }
+    reason = ", ".join(f"{n} {what}" for what, n in counts.items() if n) or "no disagreement"
+    return float(sum(counts.values())), reason
 
 
 def _labels(store: Store, record: StoredFrame) -> dict[str, Any]:
-    relative = next(r for r in record.files if r.endswith(f"/{record.frame_id}.json"))
-    _, contents = read_frame(store, record)
-    return json.loads(contents[relative])
+    _, contents = read_frame(store, record, kinds=("labels",))
+    (data,) = contents.values()
+    return json.loads(data)
 
 
 def export_review(

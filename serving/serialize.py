@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from detmatch.data.kitti import KittiObjects
 from detmatch.data.results import result_objects_2d, result_objects_3d
 from detmatch.pseudo_labels import Provenance
@@ -90,7 +92,22 @@ def labels_to_json(frame_id: str, result: FrameLabels) -> dict[str, Any]:
         "box_3d": "LiDAR frame x y z l w h yaw, gravity centre",
         "box_2d": "x1 y1 x2 y2 pixels",
         "labels": [record.to_json() for record in label_records(result)],
+        # what the camera saw and no label holds: the review's disagreement ranking reads it
+        "unmatched_2d": unmatched_2d(result),
     }
+
+
+def unmatched_2d(result: FrameLabels) -> list[dict[str, Any]]:
+    """The 2D detections (above the score threshold) that no label took, best first."""
+    detections = result.detections_2d
+    taken = set(int(i) for i in result.labels.index_2d if i >= 0)
+    rows = [i for i in np.argsort(-detections.scores, kind="stable") if int(i) not in taken]
+    return [
+        {"class_2d": result.classes[int(detections.classes[i])],
+         "box_2d": [round(float(v), 2) for v in detections.boxes[i]],
+         "score_2d": round(float(detections.scores[i]), 4)}
+        for i in rows
+    ]  # fmt: skip
 
 
 def labels_to_objects_3d(result: FrameLabels, calib: Calibration) -> KittiObjects:

@@ -21,6 +21,7 @@ from detmatch.data.kitti import FRAME_ID_PATTERN, write_image_set
 from detmatch.files import atomic_write_bytes
 from serving.store_index import SharedStore, store_files_root
 from serving.store_layout import (
+    FRAME_FILES,
     INDEX_FILE,
     NAMESPACES_DIR,
     SHARDS_DIR,
@@ -205,14 +206,22 @@ def _balance(
             splits[pick(records, key=position).key] = side
 
 
-def read_frame(store: Store, record: StoredFrame) -> tuple[StoredFrame, dict[str, bytes]]:
-    """A stored frame's files (path relative to its shard -> bytes), each checked against its
-    checksum; a mismatch (a replacement in flight) re-reads the record. Returns the record
-    the files are of."""
+def read_frame(
+    store: Store, record: StoredFrame, kinds: Iterable[str] | None = None
+) -> tuple[StoredFrame, dict[str, bytes]]:
+    """A stored frame's files (path relative to its shard -> bytes; only those of `kinds`,
+    store_layout.FRAME_FILES' names, when given), each checked against its checksum; a
+    mismatch (a replacement in flight) re-reads the record. Returns the record the files are
+    of."""
     root = store_files_root(store)
+    wanted = None if kinds is None else tuple(
+        f"{FRAME_FILES[kind][0]}/{record.frame_id}{FRAME_FILES[kind][1]}" for kind in kinds
+    )  # fmt: skip
     for _ in range(READ_RETRIES):
         contents = {}
         for relative, digest in record.files.items():
+            if wanted is not None and not relative.endswith(wanted):
+                continue
             path = resolve_file(root / SHARDS_DIR / record.shard, relative, digest)
             try:
                 data = None if path is None else path.read_bytes()

@@ -1,7 +1,8 @@
 """`detmatch review export`: CVAT 3D sets that datumaro's own importers read back (boxes within
 1e-4 m / rad of the stored labels, the related image, a calibration that projects as P2 . R0 .
 Tr does), Label Studio tasks whose pre-annotations are the stored 2D boxes, and the frame
-selections (every frame, a seeded audit sample, the frames the model is least sure of)."""
+selections (every frame, a seeded audit sample, the lowest 3D scores, the most cross-modal
+disagreement), and the disagreement signals one by one."""
 
 from __future__ import annotations
 
@@ -18,7 +19,12 @@ else:
 
 from commands.main import main  # noqa: E402
 from detmatch.data.kitti import KittiDataset  # noqa: E402
-from serving.review import camera_matrices, export_review, select_frames  # noqa: E402
+from serving.review import (  # noqa: E402
+    camera_matrices,
+    disagreement,
+    export_review,
+    select_frames,
+)
 from serving.store import LabelStore, list_frames  # noqa: E402
 from tests.conftest import KITTI_SAMPLE  # noqa: E402
 from tests.onnx_fixtures import exported_repository, served_labeler  # noqa: E402, F401
@@ -132,10 +138,14 @@ def test_selections_pick_an_audit_sample_and_the_least_sure_frames(store, tmp_pa
     assert [s.record.key for s in sample] == [s.record.key for s in select_frames(
         store, "random", budget=2, seed=3)]  # fmt: skip
     assert len(sample) == 2 and "random audit sample (seed 3)" in sample[0].reason
-    doubt = select_frames(store, "least-confident", budget=4)
-    lidar_only = [sum(lb["provenance"] != "matched" for lb in s.labels["labels"]) for s in doubt]
-    assert lidar_only == sorted(lidar_only, reverse=True)
-    assert doubt[0].reason.startswith(f"{lidar_only[0]} LiDAR-only labels")
+    unsure = select_frames(store, "least-confident", budget=4)
+    means = [np.mean([lb["score_3d"] for lb in s.labels["labels"]] or [1.0]) for s in unsure]
+    assert means == sorted(means)
+    assert unsure[0].reason.startswith(f"mean 3D score {means[0]:.3f}")
+    doubt = select_frames(store, "disagreement", budget=4)
+    scores = [disagreement(s.labels)[0] for s in doubt]
+    assert scores == sorted(scores, reverse=True) and scores[0] > 0
+    assert doubt[0].reason == disagreement(doubt[0].labels)[1]
     with pytest.raises(ValueError, match="needs --budget"):
         select_frames(store, "random")
     with pytest.raises(ValueError, match="no stored frame matches"):
@@ -144,10 +154,31 @@ def test_selections_pick_an_audit_sample_and_the_least_sure_frames(store, tmp_pa
 
     out = tmp_path / "cli"
     assert main(["review", "export", "--store", str(store), "--out", str(out), "--format",
-                 "cvat-3d", "--select", "least-confident", "--budget", "2"]) == 0  # fmt: skip
+                 "cvat-3d", "--select", "disagreement", "--budget", "2"]) == 0  # fmt: skip
     manifest = json.loads((out / "review.json").read_text())
     assert [f["id"] for f in manifest["frames"]] == [
         f"{s.record.namespace}__{s.record.frame_id}" for s in doubt[:2]
     ]
     assert "exported 2 frames" in capsys.readouterr().out
     assert len(list_frames(store)) == 4  # the store is only read
+
+
+def test_each_disagreement_signal_counts():
+    def label(provenance, class_3d="Car", class_2d="Car", cost=0.1):
+        return {"provenance": provenance, "class_3d": class_3d, "class_2d": class_2d,
+                "cost": cost, "score_3d": 0.9}  # fmt: skip
+
+    calm = {"thresholds": {"tau_hung": 1.0}, "labels": [label("matched")], "unmatched_2d": []}
+    assert disagreement(calm) == (0.0, "no disagreement")
+    loud = {
+        "thresholds": {"tau_hung": 1.0},
+        "labels": [label("matched", class_2d="Pedestrian"), label("matched", cost=0.8),
+                   label("lidar_only_confident", class_2d=None, cost=None),
+                   label("lidar_only_outside_view", class_2d=None, cost=None)],
+        "unmatched_2d": [{"class_2d": "Cyclist", "box_2d": [0, 0, 9, 9], "score_2d": 0.7}] * 2,
+    }  # fmt: skip
+    assert disagreement(loud) == (
+        5.0,
+        "2 camera-only detections, 1 unconfirmed LiDAR-only "
+        "labels in view, 1 class disagreements, 1 weak matches",
+    )
