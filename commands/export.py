@@ -2,6 +2,8 @@
 
     detmatch-export --checkpoint CKPT --repository DIR [--version V] [--promote]
                     [--parity-data KITTI_DIR ...] [--no-checkpoint]
+    detmatch-export --checkpoint CKPT --repository DIR --quantize int8 [--promote]
+    detmatch-export --repository DIR --from-version V --quantize int8 [--calibration-data DIR]
     detmatch-export --repository DIR --list
     detmatch-export --repository DIR --promote V | --demote V
     detmatch-export --version
@@ -83,6 +85,32 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not copy the training checkpoint into the version (the manifest then only "
         "references it by path and SHA-256; `detmatch retrain` needs it there to continue)",
     )
+    parser.add_argument(
+        "--quantize",
+        choices=["int8"],
+        help="also publish an INT8 version (onnxruntime static quantization, QDQ, per-channel "
+        "weights) of the exported one, or of --from-version; refused when its labels agree "
+        "with the fp32 version's less than --min-agreement",
+    )
+    parser.add_argument("--from-version", metavar="VERSION",
+                        help="with --quantize: quantize this published version")  # fmt: skip
+    parser.add_argument(
+        "--calibration-data",
+        metavar="DIR",
+        help="KITTI-layout frames to calibrate and check the INT8 version on (default: the "
+        "training data the version's manifest names, if present)",
+    )
+    parser.add_argument("--calibration-frames", type=int, default=32,
+                        help="frames the INT8 activations are calibrated on")  # fmt: skip
+    parser.add_argument("--agreement-frames", type=int, default=32,
+                        help="other frames both versions label to compare")  # fmt: skip
+    parser.add_argument(
+        "--min-agreement",
+        type=float,
+        default=0.95,
+        help="share of the fp32 version's matched labels the INT8 version must reproduce "
+        "(same class, 3D IoU >= 0.7, 2D IoU >= 0.7)",
+    )
     parser.add_argument("--rtol", type=float, default=1e-4, help="parity relative tolerance")
     parser.add_argument("--atol", type=float, default=1e-3, help="parity absolute tolerance")
     parser.add_argument("--quiet", action="store_true", help="print only the result")
@@ -118,7 +146,7 @@ def _export(args: argparse.Namespace) -> int:
             args.checkpoint,
             args.repository,
             version=args.version,
-            promote_version=args.promote is True,
+            promote_version=args.promote is True and args.quantize is None,
             parity_data=args.parity_data,
             parity_frames_per_source=args.parity_frames,
             synthetic_frames=args.synthetic_frames,
@@ -129,8 +157,42 @@ def _export(args: argparse.Namespace) -> int:
     except ExportCheckError as error:
         print(f"detmatch-export: export failed, nothing was published: {error}", file=sys.stderr)
         return 1
+    promote_int8 = args.quantize is not None and args.promote is True
     state = "published and promoted" if result.promoted else "published (not promoted)"
     print(f"{state} version {result.version}: {result.path}")
+    if args.quantize is None:
+        return 0
+    return _quantize(args, result.version, promote_int8)
+
+
+def _quantize(args: argparse.Namespace, source: str, promote_version: bool) -> int:
+    from export.graphs import ExportCheckError
+    from export.quantize import quantize_version
+    from serving.repository import load_manifest, version_dir
+
+    data = args.calibration_data
+    if data is None:
+        training = load_manifest(version_dir(args.repository, source)).training
+        data = (training.config.get("data") or {}).get("root")
+        if not data or not (Path(data) / "training" / "image_2").is_dir():
+            raise ValueError(f"--quantize: version {source}'s training data ({data}) is not "
+                             "here; give --calibration-data DIR")  # fmt: skip
+    try:
+        result = quantize_version(
+            args.repository, source, data, args.calibration_frames, args.agreement_frames,
+            args.min_agreement, promote_version=promote_version,
+            log=None if args.quiet else lambda message: print(message, file=sys.stderr),
+        )  # fmt: skip
+    except ExportCheckError as error:
+        print(f"detmatch-export: the INT8 version failed its check, nothing was published: "
+              f"{error}", file=sys.stderr)  # fmt: skip
+        return 1
+    record = result.record
+    state = "published and promoted" if result.promoted else "published (not promoted)"
+    print(
+        f"{state} INT8 version {result.version} of {source}: {result.path} ({record.reproduced}"
+        f" of {record.matched_labels} matched labels reproduced, {record.agreement:.1%})"
+    )
     return 0
 
 
@@ -139,11 +201,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     repository = Path(args.repository)
     promote_existing = isinstance(args.promote, str)
-    actions = [bool(args.checkpoint), args.list, promote_existing, bool(args.demote)]
+    actions = [bool(args.checkpoint), args.list, promote_existing, bool(args.demote),
+               bool(args.from_version)]  # fmt: skip
     if sum(actions) != 1:
         parser.error(
-            "give exactly one of --checkpoint, --list, --promote VERSION, --demote VERSION"
+            "give exactly one of --checkpoint, --list, --promote VERSION, --demote VERSION, "
+            "--from-version VERSION"
         )
+    if args.from_version and args.quantize is None:
+        parser.error("--from-version goes with --quantize int8")
     try:
         if args.list:
             return _list(repository)
@@ -158,6 +224,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{'promoted' if promote_existing else 'demoted'} {name}; "
                   f"served version: {served_version(repository)}")  # fmt: skip
             return 0
+        if args.from_version:
+            return _quantize(args, args.from_version, args.promote is True)
         return _export(args)
     except (FileNotFoundError, ValueError) as error:
         print(f"detmatch-export: error: {error}", file=sys.stderr)

@@ -30,8 +30,9 @@ from detmatch.models.pillars import PillarGrid
 from detmatch.records import RecordError, from_plain, to_plain
 
 MANIFEST_FORMAT = 2
-# Formats this reader accepts: 1 (before retraining rounds) and 2.
-READABLE_FORMATS = (1, 2)
+# Formats this reader accepts: 1 (before retraining rounds), 2, and 3 (2 with a quantization
+# record: an INT8 version, export.quantize).
+READABLE_FORMATS = (1, 2, 3)
 MANIFEST_FILE = "manifest.json"
 VERSION_PATTERN = re.compile(r"^[0-9]{6,}$")
 
@@ -324,6 +325,35 @@ class RetrainingRecord:
 
 
 @dataclass(frozen=True)
+class QuantizationRecord:
+    """How an INT8 version was made from an fp32 one (export.quantize): the scheme, the
+    source version, the calibration frames, and label parity on held-out frames (the share of
+    the source's matched labels reproduced, and the minimum it had to reach)."""
+
+    scheme: str
+    source_version: str
+    calibration_data: str
+    calibration_frames: int
+    parity_frames: int
+    matched_labels: int
+    reproduced: int
+    agreement: float
+    min_agreement: float
+
+    def __post_init__(self) -> None:
+        if not VERSION_PATTERN.match(self.source_version):
+            raise ValueError(f"source_version: expected six or more digits, got "
+                             f"{self.source_version!r}")  # fmt: skip
+        if not 0 <= self.reproduced <= self.matched_labels:
+            raise ValueError(f"reproduced: {self.reproduced} of {self.matched_labels}")
+        if self.agreement < self.min_agreement:
+            raise ValueError(
+                f"agreement {self.agreement} is below min_agreement {self.min_agreement}: "
+                "such a version is never published"
+            )
+
+
+@dataclass(frozen=True)
 class Manifest:
     format: int
     version: str
@@ -336,6 +366,7 @@ class Manifest:
     tools: dict[str, str]
     files: dict[str, FileRecord]
     retraining: RetrainingRecord | None = None
+    quantization: QuantizationRecord | None = None
 
     def __post_init__(self) -> None:
         if self.format not in READABLE_FORMATS:
@@ -347,6 +378,10 @@ class Manifest:
             raise ValueError(
                 "format: a format 1 manifest has no retraining record and no checkpoint_file"
             )
+        if (self.format == 3) != (self.quantization is not None):
+            raise ValueError("format: format 3, and only format 3, has a quantization record")
+        if self.quantization is not None and self.quantization.source_version == self.version:
+            raise ValueError(f"quantization.source_version: {self.version} is this version")
         if self.retraining is not None and self.retraining.parent_version == self.version:
             raise ValueError(f"retraining.parent_version: {self.version} is this version")
         if not VERSION_PATTERN.match(self.version):

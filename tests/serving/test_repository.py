@@ -222,8 +222,10 @@ def test_manifest_format_1_is_read_and_format_2_fields_are_checked(tmp_path):
     assert Manifest.from_json(old).format == 1  # written before retraining rounds
     with pytest.raises(ManifestError, match="a format 1 manifest has no retraining record"):
         Manifest.from_json({**old, "training": {**old["training"], "checkpoint_file": "c.pt"}})
-    with pytest.raises(ManifestError, match="this reader knows 1, 2"):
-        Manifest.from_json({**plain, "format": 3})
+    with pytest.raises(ManifestError, match="this reader knows 1, 2, 3"):
+        Manifest.from_json({**plain, "format": 4})
+    with pytest.raises(ManifestError, match="format 3, and only format 3, has a quantization"):
+        Manifest.from_json({**plain, "format": 3})  # an INT8 version's format, without its record
 
     passed = _round_record(_figures(30.0), _figures(30.5), passed=True)  # within 1 point
     manifest = Manifest.from_json({**plain, "retraining": passed})
