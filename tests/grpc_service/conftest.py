@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import grpc
 import pytest
 
 from serving.config import ServerConfig
@@ -23,7 +24,7 @@ from serving.repository import promote
 from serving.service import LabelingService, ModelSlot
 from serving.store import LabelStore
 from serving.testing import BackgroundServer
-from tests.conftest import REPO
+from tests.conftest import KITTI_SAMPLE, REPO
 from tests.onnx_fixtures import (  # noqa: F401
     _one_torch_thread,
     exported_repository,
@@ -140,3 +141,20 @@ def serve_process(
         process.wait(timeout=30)
         process.stdout.close()
         process.stderr.close()
+
+
+def send_frames(target: str, name: str, acknowledged: list[str], stop) -> None:
+    """Label the KITTI sample's frame 000000 as NAME_0000, NAME_0001, ... until `stop` is set
+    or a call fails, appending each acknowledged id (the SIGKILL tests' load)."""
+    from serving.client import LabelingClient
+
+    with LabelingClient(target, timeout_s=30) as client:
+        for i in range(1000):
+            if stop.is_set():
+                return
+            frame_id = f"{name}_{i:04d}"
+            try:
+                client.label_kitti_frame(KITTI_SAMPLE, "000000", send_as=frame_id)
+            except grpc.RpcError:
+                return
+            acknowledged.append(frame_id)

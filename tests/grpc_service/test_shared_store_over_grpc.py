@@ -10,13 +10,11 @@ import threading
 import time
 from pathlib import Path
 
-import grpc
-
 from serving.client import LabelingClient
 from serving.store import check_integrity, export_store, list_frames
 from serving.store_index import SharedStore
 from tests.conftest import KITTI_SAMPLE
-from tests.grpc_service.conftest import serve_process
+from tests.grpc_service.conftest import send_frames, serve_process
 from tests.postgres import postgres_server, postgres_url  # noqa: F401 - fixtures
 
 CREATED, REPLACED, UNCHANGED = 1, 3, 2  # serving.proto's StoreOutcome numbers
@@ -26,19 +24,6 @@ def _replica(repository, shared: SharedStore, shard: str):
     return serve_process(
         repository, shared.url, "--store-root", str(shared.root), "--shard", shard
     )  # fmt: skip
-
-
-def _load(target: str, name: str, acknowledged: list[str], stop: threading.Event) -> None:
-    with LabelingClient(target, timeout_s=30) as client:
-        for i in range(1000):
-            if stop.is_set():
-                return
-            frame_id = f"{name}_{i:04d}"
-            try:
-                client.label_kitti_frame(KITTI_SAMPLE, "000000", send_as=frame_id)
-            except grpc.RpcError:
-                return
-            acknowledged.append(frame_id)
 
 
 def test_replicas_killed_under_load_lose_no_acknowledged_label(
@@ -58,7 +43,7 @@ def test_replicas_killed_under_load_lose_no_acknowledged_label(
             processes = {"r1": one, "r2": two}
             threads = [
                 threading.Thread(
-                    target=_load, args=(targets[r], f"{round_}{r}w{w}", acknowledged, stop)
+                    target=send_frames, args=(targets[r], f"{round_}{r}w{w}", acknowledged, stop)
                 )
                 for r in targets
                 for w in range(2)

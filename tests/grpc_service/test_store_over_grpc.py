@@ -18,7 +18,7 @@ from serving.store import (
     list_frames,
 )
 from tests.conftest import KITTI_SAMPLE
-from tests.grpc_service.conftest import serve_process
+from tests.grpc_service.conftest import send_frames, serve_process
 from tests.serving.store_helpers import (
     listed_files,
     shard_files,
@@ -80,20 +80,11 @@ def test_the_store_survives_a_killed_server(tmp_path, exported_repository):
     acknowledged: list[str] = []
     stop = threading.Event()
 
-    def send(target: str, worker: int) -> None:
-        with LabelingClient(target, timeout_s=30) as client:
-            for i in range(1000):
-                if stop.is_set():
-                    return
-                frame_id = f"w{worker}_{i:04d}"
-                try:
-                    client.label_kitti_frame(KITTI_SAMPLE, "000000", send_as=frame_id)
-                except grpc.RpcError:
-                    return
-                acknowledged.append(frame_id)
-
     with serve_process(exported_repository, store) as (process, target):
-        threads = [threading.Thread(target=send, args=(target, w)) for w in range(3)]
+        threads = [
+            threading.Thread(target=send_frames, args=(target, f"w{w}", acknowledged, stop))
+            for w in range(3)
+        ]
         for thread in threads:
             thread.start()
         deadline = time.monotonic() + 120
