@@ -1,5 +1,5 @@
-"""Human review of the auto-labels: `detmatch review export` (no torch; CVAT's formats need
-the review extra, datumaro)."""
+"""Human review of the auto-labels: `detmatch review export` and `detmatch review import` (no
+torch; CVAT's formats need the review extra, datumaro)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,12 @@ import argparse
 from pathlib import Path
 
 from commands.common import add_overwrite_option, add_store_options, prepare_output, store_location
-from detmatch.constants import LABEL_STUDIO_LOCAL_FILES, REVIEW_FORMATS, REVIEW_SELECTIONS
+from detmatch.constants import (
+    LABEL_STUDIO_LOCAL_FILES,
+    REVIEW_CLASSES,
+    REVIEW_FORMATS,
+    REVIEW_SELECTIONS,
+)
 
 # What `detmatch review export` writes into --out (removed first by --overwrite).
 REVIEW_OUTPUTS = (
@@ -27,6 +32,20 @@ def review_export(args: argparse.Namespace) -> int:
     print(
         f"exported {summary.frames} frames ({summary.labels} labels) for review as "
         f"{summary.format} to {summary.out}; why each frame: {summary.out}/review.json"
+    )
+    return 0
+
+
+def review_import(args: argparse.Namespace) -> int:
+    from serving.reviews import import_review
+
+    classes = [c.strip() for c in args.classes.split(",") if c.strip()]
+    summary = import_review(store_location(args), Path(args.source), args.format, classes)
+    print(
+        f"imported human labels of {len(summary.created) + len(summary.replaced)} frames from "
+        f"{args.source}: {len(summary.created)} created, {len(summary.unchanged)} unchanged, "
+        f"{len(summary.replaced)} replaced"
+        + (f" ({', '.join(summary.replaced[:10])})" if summary.replaced else "")
     )
     return 0
 
@@ -61,3 +80,18 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
                         "Studio's local files, or your bucket's URL)")  # fmt: skip
     add_overwrite_option(parser)
     parser.set_defaults(handler=review_export)
+
+    parser = actions.add_parser(
+        "import",
+        help="a reviewed export back into the label store as human labels, beside the "
+        "machine labels: all of it or nothing; says created / unchanged / replaced",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    add_store_options(parser, True, "label store")
+    parser.add_argument("--from", dest="source", required=True,
+                        help="CVAT's export directory (cvat-3d: Sly Point Cloud; kitti-raw), or "
+                        "Label Studio's JSON export file")  # fmt: skip
+    parser.add_argument("--format", required=True, choices=REVIEW_FORMATS)
+    parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),
+                        help="the class names a reviewer may use")  # fmt: skip
+    parser.set_defaults(handler=review_import)

@@ -29,3 +29,6 @@ IMAGE_STD = (0.229, 0.224, 0.225)
 REVIEW_FORMATS = ("cvat-3d", "kitti-raw", "label-studio")
 REVIEW_SELECTIONS = ("all", "random", "least-confident", "disagreement")
 LABEL_STUDIO_LOCAL_FILES = "/data/local-files/?d="
+# The labels a reviewer can choose from in an exported review set (with any other class the
+# exported labels hold), and the ones an import accepts by default.
+REVIEW_CLASSES = ("Car", "Pedestrian", "Cyclist", "Van")

@@ -35,7 +35,12 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from detmatch.constants import LABEL_STUDIO_LOCAL_FILES, REVIEW_FORMATS, REVIEW_SELECTIONS
+from detmatch.constants import (
+    LABEL_STUDIO_LOCAL_FILES,
+    REVIEW_CLASSES,
+    REVIEW_FORMATS,
+    REVIEW_SELECTIONS,
+)
 from detmatch.data.kitti import read_calib
 from detmatch.files import atomic_write_bytes
 from detmatch.structures import Calibration
@@ -46,6 +51,7 @@ FORMATS, SELECTIONS = REVIEW_FORMATS, REVIEW_SELECTIONS
 DATUMARO_FORMAT = {"cvat-3d": "sly_pointcloud", "kitti-raw": "kitti_raw"}
 ROUNDING_DIGITS = 6
 MANIFEST = "review.json"
+
 LOCAL_FILES_PREFIX = LABEL_STUDIO_LOCAL_FILES
 
 
@@ -238,7 +244,8 @@ def _cvat(frames: list[_Frame], out: Path, datumaro_format: str) -> int:
             "CVAT's formats are written with datumaro: pip install 'detmatch[review]'"
         ) from None
     annotation.COORDINATE_ROUNDING_DIGITS = ROUNDING_DIGITS
-    classes = sorted({lb["class_3d"] for f in frames for lb in f.selected.labels["labels"]})
+    present = {lb["class_3d"] for f in frames for lb in f.selected.labels["labels"]}
+    classes = sorted(set(REVIEW_CLASSES) | present)
     items, count = [], 0
     with tempfile.TemporaryDirectory(prefix="detmatch-review-") as scratch:
         for index, frame in enumerate(frames):
@@ -304,8 +311,9 @@ def label_studio_config(classes: list[str]) -> str:
 
 def _label_studio(frames: list[_Frame], out: Path, prefix: str) -> int:
     tasks, count = [], 0
-    classes = sorted({lb["class_2d"] for f in frames for lb in f.selected.labels["labels"]
-                      if lb["class_2d"] is not None})  # fmt: skip
+    classes = sorted(set(REVIEW_CLASSES) | {lb["class_2d"] for f in frames
+                                            for lb in f.selected.labels["labels"]
+                                            if lb["class_2d"] is not None})  # fmt: skip
     for frame in frames:
         relative = f"images/{frame.id}.png"
         atomic_write_bytes(out / relative, frame.image_png)

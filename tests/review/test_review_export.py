@@ -25,22 +25,8 @@ from serving.review import (  # noqa: E402
     export_review,
     select_frames,
 )
-from serving.store import LabelStore, list_frames  # noqa: E402
+from serving.store import list_frames  # noqa: E402
 from tests.conftest import KITTI_SAMPLE  # noqa: E402
-from tests.onnx_fixtures import exported_repository, served_labeler  # noqa: E402, F401
-from tests.serving.store_helpers import put_frame  # noqa: E402
-
-FRAMES = ("000000", "000001", "000002")
-
-
-@pytest.fixture
-def store(tmp_path, served_labeler):  # noqa: F811
-    root = tmp_path / "store"
-    with LabelStore(root, "a") as writer:
-        for frame in FRAMES:
-            put_frame(writer, served_labeler, frame, source=frame)
-        put_frame(writer, served_labeler, "000000", source="000000", namespace="site-b")
-    return root
 
 
 def _stored_boxes(store) -> dict[str, list[tuple[str, list[float]]]]:
