@@ -404,11 +404,15 @@ class RetrainConfig:
     """A retraining round (`detmatch retrain`): teacher-student training of `steps` steps from
     the promoted version, promoted only if neither modality's moderate mAP on the gate split
     ([data] val_split) falls more than max_map_drop points (AP percent) below the promoted
-    version's. stored_labels: one of STORED_LABEL_USES (default: the unlabeled pool)."""
+    version's. stored_labels: one of STORED_LABEL_USES (default: the unlabeled pool).
+    reviewed_gate_fraction: the share of human-reviewed frames (3D reviews, `detmatch review
+    import`) held out in the gate split, chosen by a hash of each key (the others join the
+    labeled frames)."""
 
     steps: int = 200
     max_map_drop: float = 1.0
     stored_labels: str = "pool"
+    reviewed_gate_fraction: float = 0.0
 
     SECTION: ClassVar[str] = "retrain"
 
@@ -417,6 +421,8 @@ class RetrainConfig:
         check.positive("steps")
         check.non_negative("max_map_drop")
         check.one_of("stored_labels", STORED_LABEL_USES)
+        if not 0.0 <= self.reviewed_gate_fraction < 1.0:
+            check.fail("reviewed_gate_fraction", "a share in [0, 1)")
 
 
 @dataclass(frozen=True)

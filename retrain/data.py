@@ -8,6 +8,12 @@
                                           and the stored frames
     ROUND/ImageSets/round_gate.txt        the held-out gate frames ([data] val_split)
 
+A stored frame a reviewer corrected in CVAT (`detmatch review import`, a 3D review) joins
+round_labeled with the reviewer's labels as its label_2, whatever stored_labels says; `[retrain]
+reviewed_gate_fraction` of them (by a hash of the key) join round_gate instead. A review is part
+of the store's snapshot, so a new review makes a new round. Label Studio reviews (2D boxes only)
+leave their frame where it was.
+
 With `[retrain] stored_labels = "labeled"` the stored frames join round_labeled instead, their
 stored labels (the KITTI rows of `STORE/.../label_2`) being fixed training targets. The store
 is read through `serving.store.export_store` (every shard); a stored frame whose point cloud is
@@ -18,6 +24,7 @@ frames were sent to the service.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 from dataclasses import dataclass
@@ -25,12 +32,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from detmatch.data.kitti import FRAME_ID_PATTERN, KittiDataset, write_image_set
+from detmatch.data.kitti import FRAME_ID_PATTERN, KittiDataset, write_image_set, write_objects
 from detmatch.files import sha256_file
-from retrain.snapshot import frame_digest, snapshot_id
+from retrain.snapshot import frame_digest, snapshot_id, stored_digests
 from serving.manifest import RoundData
+from serving.reviews import has_3d_review, human_label_rows, read_human_labels
 from serving.store import export_store
-from serving.store_export import Store
+from serving.store_export import EXPORT_MANIFEST, Store, split_of
 
 # The ImageSets names inside a round's data directory.
 LABELED_SPLIT = "round_labeled"
@@ -67,6 +75,7 @@ def compose_round_data(
     sources: SourceSplits,
     stored_labels: str = "pool",
     progress: bool = True,
+    reviewed_gate_fraction: float = 0.0,
 ) -> RoundData:
     """Write the round's data directory `out` (replacing whatever is there; see the module
     docstring) and return what went into it."""
@@ -93,20 +102,27 @@ def compose_round_data(
         for kind, source in _frame_files(original, frame_id).items():
             os.symlink(source.resolve(), training / kind / source.name)
     gate_clouds = {sha256_file(original.points_path(i)) for i in gate}
-    stored, excluded, snapshot = _import_store(store_root, out, gate_clouds, set(frames), progress)
+    imported = _import_store(
+        store_root, out, gate_clouds, set(frames), progress, reviewed_gate_fraction
+    )
+    stored = imported.machine
     with_labels = stored_labels == "labeled"
     write_image_set(
-        out / "ImageSets" / f"{LABELED_SPLIT}.txt", labeled + (stored if with_labels else [])
+        out / "ImageSets" / f"{LABELED_SPLIT}.txt",
+        labeled + imported.reviewed + (stored if with_labels else []),
     )
     write_image_set(
         out / "ImageSets" / f"{UNLABELED_SPLIT}.txt", unlabeled + ([] if with_labels else stored)
     )
-    write_image_set(out / "ImageSets" / f"{GATE_SPLIT}.txt", gate)
+    write_image_set(out / "ImageSets" / f"{GATE_SPLIT}.txt", gate + imported.reviewed_gate)
+    excluded, snapshot = imported.excluded, imported.snapshot
     return RoundData(
         labeled=len(labeled),
         unlabeled=len(unlabeled),
         stored=len(stored),
-        gate=len(gate),
+        reviewed=len(imported.reviewed) + len(imported.reviewed_gate),
+        reviewed_gate=len(imported.reviewed_gate),
+        gate=len(gate) + len(imported.reviewed_gate),
         excluded=excluded,
         store_snapshot=snapshot,
         stored_labels=stored_labels,
@@ -147,17 +163,39 @@ def _frame_files(dataset: KittiDataset, frame_id: str) -> dict[str, Path]:
     return files
 
 
+@dataclass(frozen=True)
+class ImportedStore:
+    """The stored frames a round took, by round id: machine-labeled ones, human-reviewed ones
+    (3D reviews: labeled frames) and reviewed ones held out in the gate; the number left out
+    as copies of gate frames; the snapshot id of everything read."""
+
+    machine: list[str]
+    reviewed: list[str]
+    reviewed_gate: list[str]
+    excluded: int
+    snapshot: str
+
+
 def _import_store(
-    store: Store, out: Path, gate_clouds: set[str], taken: set[str], progress: bool
-) -> tuple[list[str], int, str]:
-    """Export every stored frame and move it into out under its round id. Returns the round
-    ids, the number left out as gate frames and the snapshot id of everything exported."""
+    store: Store,
+    out: Path,
+    gate_clouds: set[str],
+    taken: set[str],
+    progress: bool,
+    reviewed_gate_fraction: float = 0.0,
+) -> ImportedStore:
+    """Export every stored frame and move it into out under its round id; a frame with a 3D
+    human review gets the reviewer's labels as its label_2 and joins the labeled frames (or,
+    by a hash of its key, the gate)."""
     export = out / EXPORT_DIR
     export_store(store, export)
     exported = []
     if (export / "training" / "image_2").is_dir():
         exported = KittiDataset(export).ids()
-    stored, digests, excluded = [], [], 0
+    keys = {e["id"]: (e["namespace"], e["frame_id"])
+            for e in json.loads((export / EXPORT_MANIFEST).read_text())["frames"]}  # fmt: skip
+    reviews = read_human_labels(store)
+    machine, reviewed, reviewed_gate, digests, excluded = [], [], [], [], 0
     dataset = KittiDataset(export) if exported else None
     for frame_id in tqdm(exported, desc="label store", disable=not progress, dynamic_ncols=True):
         files = _frame_files(dataset, frame_id)
@@ -165,7 +203,8 @@ def _import_store(
         file_digests = {kind: sha256_file(path) for kind, path in files.items()}
         if record.is_file():
             file_digests["labels"] = sha256_file(record)
-        digests.append(frame_digest(file_digests.values()))
+        review = reviews.get(keys[frame_id])
+        digests.append(frame_digest(stored_digests(file_digests.values(), review)))
         if file_digests["velodyne"] in gate_clouds:
             excluded += 1
             continue
@@ -174,6 +213,13 @@ def _import_store(
             raise ValueError(f"stored frame {frame_id} would be {name}, an id the data set has")
         for kind, path in files.items():
             os.replace(path, out / "training" / kind / f"{name}{path.suffix}")
-        stored.append(name)
+        if review is None or not has_3d_review(review):
+            machine.append(name)
+            continue
+        frame = KittiDataset(out).load_frame(name, with_labels=False)
+        rows = human_label_rows(review, frame.calib, frame.image.shape[1::-1])
+        write_objects(out / "training" / "label_2" / f"{name}.txt", rows)
+        side = split_of(*keys[frame_id], reviewed_gate_fraction)
+        (reviewed_gate if side == "val" else reviewed).append(name)
     shutil.rmtree(export)
-    return stored, excluded, snapshot_id(digests)
+    return ImportedStore(machine, reviewed, reviewed_gate, excluded, snapshot_id(digests))

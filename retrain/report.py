@@ -45,10 +45,13 @@ def data_table(data: RoundData) -> str:
             "|---|---|",
             f"| original labeled frames (`{splits['labeled']}`) | {data.labeled} |",
             f"| original unlabeled pool (`{splits['unlabeled']}`) | {data.unlabeled} |",
-            f"| label store, every shard (snapshot `{data.store_snapshot[:12]}`), used as {use} "
-            f"| {data.stored} |",
+            f"| human-reviewed stored frames (`detmatch review import`, 3D), labeled "
+            f"| {data.reviewed - data.reviewed_gate} |",
+            f"| label store, machine-labeled (snapshot `{data.store_snapshot[:12]}`), used as "
+            f"{use} | {data.stored} |",
             f"| stored frames left out (identical to gate frames) | {data.excluded} |",
-            f"| gate (`{splits['gate']}`, held out) | {data.gate} |",
+            f"| gate (`{splits['gate']}`, held out; {data.reviewed_gate} human-reviewed) "
+            f"| {data.gate} |",
         ]
     )
 

@@ -342,6 +342,7 @@ def _plan(request: RoundRequest, log: Callable[[str], None]) -> RoundState | Rou
         SourceSplits(config.data.train_split, config.ssl.unlabeled_split, config.data.val_split),
         config.retrain.stored_labels,
         progress=request.progress,
+        reviewed_gate_fraction=config.retrain.reviewed_gate_fraction,
     )
     pool = data.unlabeled + (data.stored if data.stored_labels == "pool" else 0)
     if pool == 0:
@@ -351,8 +352,10 @@ def _plan(request: RoundRequest, log: Callable[[str], None]) -> RoundState | Rou
             "joined the pool"
         )
     log(
-        f"round {round_id}: {data.labeled} labeled, {data.unlabeled} unlabeled and {data.stored} "
-        f"stored frames ({data.excluded} left out as gate frames); gate {data.gate} frames"
+        f"round {round_id}: {data.labeled} labeled, {data.reviewed} human-reviewed "
+        f"({data.reviewed_gate} of them in the gate), {data.stored} machine-labeled and "
+        f"{data.unlabeled} unlabeled frames ({data.excluded} stored frames left out as gate "
+        f"frames); gate {data.gate} frames"
     )
     state = RoundState(
         round_id=round_id,

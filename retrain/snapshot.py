@@ -15,6 +15,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from serving.reviews import read_human_labels, review_digest
 from serving.store import list_frames
 from serving.store_export import Store
 from serving.store_index import SharedStore
@@ -42,4 +43,16 @@ def store_snapshot(store: Store) -> StoreSnapshot:
     if not isinstance(store, SharedStore) and not Path(store).is_dir():
         raise FileNotFoundError(f"no label store at {store}")
     records = list_frames(store)
-    return StoreSnapshot(snapshot_id(frame_digest(r.files.values()) for r in records), len(records))
+    reviews = read_human_labels(store)
+    return StoreSnapshot(
+        snapshot_id(frame_digest(stored_digests(r.files.values(), reviews.get(r.key)))
+                    for r in records),
+        len(records),
+    )  # fmt: skip
+
+
+def stored_digests(file_digests: Iterable[str], review: dict | None) -> list[str]:
+    """What identifies a stored frame's content: its files' digests, and its human labels'
+    when it was reviewed (a new review is new data for the next round)."""
+    digests = list(file_digests)
+    return digests if review is None else [*digests, review_digest(review)]

@@ -276,6 +276,8 @@ class RoundData:
     stored_labels: str
     data_root: str
     splits: dict[str, str]
+    reviewed: int = 0  # human-reviewed stored frames among `stored`, used as labeled frames
+    reviewed_gate: int = 0  # of those, held out in the gate
 
     def __post_init__(self) -> None:
         for name in ("labeled", "unlabeled", "stored", "gate", "excluded"):

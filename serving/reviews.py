@@ -89,8 +89,11 @@ def read_human_labels(store: Store, namespace: str | None = None) -> dict[tuple,
     """Every frame's human labels (the stored JSON) by key, after finishing any import a crash
     interrupted."""
     root = store_files_root(store)
-    with _locked(root):
-        _finish_journals(root)
+    if not (root / REVIEWS_DIR).is_dir():
+        return {}
+    if any((root / REVIEWS_DIR).glob(f"{JOURNAL_PREFIX}*.json")):
+        with _locked(root):
+            _finish_journals(root)
     found = {}
     for path in sorted((root / REVIEWS_DIR).glob("*/*.json")):
         record = json.loads(path.read_text())
@@ -323,3 +326,33 @@ def _write(root: Path, reviews: list[HumanLabels]) -> ImportSummary:
             atomic_write_bytes(journal, json.dumps(records).encode())
             _finish_journals(root)
     return ImportSummary(tuple(created), tuple(unchanged), tuple(replaced))
+
+
+def review_digest(record: dict) -> str:
+    """A stored review's content digest (what a retraining snapshot folds in): its labels and
+    where they came from, not when they were imported."""
+    import hashlib
+
+    content = {k: v for k, v in record.items() if k != "imported_at"}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+
+def has_3d_review(record: dict) -> bool:
+    """A review that fixes a frame's 3D labels: a CVAT one (its boxes, possibly none: the
+    reviewer found nothing); a Label Studio review has 2D boxes only."""
+    return record["source"] in ("cvat-3d", "kitti-raw")
+
+
+def human_label_rows(record: dict, calib, image_size: tuple[int, int]):
+    """A 3D review's labels as KITTI label rows (no score; truncation and occlusion 0: a
+    reviewer's box is a fully labeled object), the camera's view only, as KITTI labels."""
+    import dataclasses
+
+    from detmatch.data.results import result_objects_3d
+
+    labels = [lb for lb in record["labels"] if lb.get("box_3d") is not None]
+    boxes = np.array([lb["box_3d"] for lb in labels], dtype=np.float64).reshape(-1, 7)
+    rows = result_objects_3d(boxes, [lb["class"] for lb in labels], np.zeros(len(labels)),
+                             calib, image_size)  # fmt: skip
+    return dataclasses.replace(rows, score=None, truncated=np.zeros(len(rows)),
+                               occluded=np.zeros(len(rows), dtype=np.int64))  # fmt: skip
