@@ -30,7 +30,7 @@ def test_demo_runs_the_whole_loop_and_reports(tmp_path, capsys):
     for heading in ("## Labeled-only vs DetMatch", "## The service", "## Retraining round",
                     "## Training curves", "## Figure 3"):  # fmt: skip
         assert heading in text
-    assert "| 3D | **mAP** |" in text and "| label store, every shard" in text
+    assert "| 3D | **mAP** |" in text and "| label store, machine-labeled" in text
 
     # The service labeled the unseen frames into the store; the round read them.
     assert summary["served"]["frames"] == 3 and summary["served"]["versions"] == ["000001"]

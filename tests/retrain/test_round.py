@@ -100,7 +100,7 @@ def test_served_labels_feed_a_round_that_is_promoted_and_served(
     assert round_dir.name == record.round_id
     report = (round_dir / "report.md").read_text()
     assert "**version 000002 promoted" in report and "| 3D | **mAP** |" in report
-    assert "| label store, every shard" in report and "| 3 |" in report
+    assert "| label store, machine-labeled" in report and "| 3 |" in report
     summary = json.loads((round_dir / "report.json").read_text())
     assert summary["promoted"] is True and summary["version"] == "000002"
     assert (round_dir / "per_class_ap.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
