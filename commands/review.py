@@ -18,6 +18,7 @@ from detmatch.constants import (
 REVIEW_OUTPUTS = (
     "ds0", "meta.json", "key_id_map.json", "tracklet_labels.xml", "frame_list.txt",
     "velodyne_points", "image_00", "images", "tasks.json", "label_config.xml", "review.json",
+    "cvat_labels.json",
 )  # fmt: skip
 
 
@@ -47,6 +48,34 @@ def review_import(args: argparse.Namespace) -> int:
         f"{len(summary.replaced)} replaced"
         + (f" ({', '.join(summary.replaced[:10])})" if summary.replaced else "")
     )
+    return 0
+
+
+def review_backend(args: argparse.Namespace) -> int:
+    from serving.review_backend import Backend, RetrainQueue, retrain_command, serve
+
+    repository = Path(args.repository)
+    if not repository.is_dir():
+        raise FileNotFoundError(f"--repository {repository}: no such directory")
+    store = store_location(args) if args.store else None
+    queue = None
+    if args.data is not None:
+        if store is None:
+            raise ValueError("--data (retraining) goes with --store: a round trains on the "
+                             "label store's frames")  # fmt: skip
+        if not Path(args.data).is_dir():
+            raise FileNotFoundError(f"--data {args.data}: no such directory")
+        queue = RetrainQueue(retrain_command(args.store, args.store_root, args.data,
+                                             str(repository), args.set),
+                             lock_retry_s=args.lock_retry_s)  # fmt: skip
+    elif args.train_after is not None:
+        raise ValueError("--train-after needs --data and --store (what a round trains on)")
+    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    backend = Backend(repository, store, queue, args.train_after, args.label_studio_url, classes)
+    try:
+        serve(backend, args.host, args.port)
+    except KeyboardInterrupt:
+        return 130
     return 0
 
 
@@ -95,3 +124,37 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),
                         help="the class names a reviewer may use")  # fmt: skip
     parser.set_defaults(handler=review_import)
+
+    parser = actions.add_parser(
+        "backend",
+        help="a Label Studio ML backend: the served 2D detector pre-annotates tasks, "
+        "annotations of exported tasks come back as human labels, training requests queue "
+        "retraining rounds (one at a time, under the repository's lock)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--repository", required=True, help="model repository (the served "
+                        "version predicts; a newly promoted one is picked up)")  # fmt: skip
+    add_store_options(parser, False, "label store where annotations of `detmatch review "
+                      "export` tasks are kept as human labels (none: not kept)")  # fmt: skip
+    parser.add_argument("--data", help="the original data set, for retraining rounds "
+                        "(none: training requests are refused)")  # fmt: skip
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="a config override for the retraining rounds (repeatable)",
+    )
+    parser.add_argument("--train-after", type=int, metavar="N",
+                        help="queue a round after every N new annotations (besides Label "
+                        "Studio's START_TRAINING)")  # fmt: skip
+    parser.add_argument("--lock-retry-s", type=float, default=30.0,
+                        help="when another retraining holds the repository: seconds between "
+                        "tries")  # fmt: skip
+    parser.add_argument("--label-studio-url", help="where task images on the Label Studio "
+                        "server are fetched from, if /setup sent no hostname")  # fmt: skip
+    parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),
+                        help="the class names a reviewer may use")  # fmt: skip
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on")
+    parser.add_argument("--port", type=int, default=9090, help="port (0: a free one)")
+    parser.set_defaults(handler=review_backend)

@@ -51,6 +51,7 @@ FORMATS, SELECTIONS = REVIEW_FORMATS, REVIEW_SELECTIONS
 DATUMARO_FORMAT = {"cvat-3d": "sly_pointcloud", "kitti-raw": "kitti_raw"}
 ROUNDING_DIGITS = 6
 MANIFEST = "review.json"
+CVAT_LABELS = "cvat_labels.json"  # the CVAT task's label specification
 
 LOCAL_FILES_PREFIX = LABEL_STUDIO_LOCAL_FILES
 
@@ -275,7 +276,21 @@ def _cvat(frames: list[_Frame], out: Path, datumaro_format: str) -> int:
     if datumaro_format == "sly_pointcloud":
         for frame in frames:
             _write_camera(out, frame)
+    atomic_write_bytes(out / CVAT_LABELS, (json.dumps(cvat_labels(classes), indent=2) + "\n")
+                       .encode())  # fmt: skip
     return count
+
+
+def cvat_labels(classes: list[str]) -> list[dict[str, Any]]:
+    """The labels of a CVAT 3D task for this export (`cvat-cli task create --labels FILE`):
+    cuboids of each class, with the attributes every exported cuboid carries (text, so that
+    CVAT keeps their values as written)."""
+    names = [*_attributes({"provenance": "", "score_3d": 0, "score_2d": None, "cost": None},
+                          "").keys(), "track_id"]  # fmt: skip
+    return [{"name": name, "type": "cuboid",
+             "attributes": [{"name": attribute, "mutable": False, "input_type": "text",
+                             "default_value": "", "values": [""]} for attribute in names]}
+            for name in classes]  # fmt: skip
 
 
 def _write_camera(out: Path, frame: _Frame) -> None:
@@ -309,6 +324,33 @@ def label_studio_config(classes: list[str]) -> str:
     )
 
 
+def rectangle_result(
+    result_id: str,
+    box: list[float],
+    class_name: str,
+    score: float,
+    image_size: tuple[int, int],
+    attributes: dict[str, Any] | None = None,
+    from_name: str = "label",
+    to_name: str = "image",
+) -> dict[str, Any]:
+    """One box (x1, y1, x2, y2 pixels) as a Label Studio `rectanglelabels` result (percent of
+    the image), with its attributes as the region's meta text."""
+    width, height = image_size
+    x1, y1, x2, y2 = (float(v) for v in box)
+    result = {
+        "id": result_id, "type": "rectanglelabels", "from_name": from_name, "to_name": to_name,
+        "original_width": width, "original_height": height, "image_rotation": 0,
+        "value": {"x": 100 * x1 / width, "y": 100 * y1 / height,
+                  "width": 100 * (x2 - x1) / width, "height": 100 * (y2 - y1) / height,
+                  "rotation": 0, "rectanglelabels": [class_name]},
+        "score": float(score),
+    }  # fmt: skip
+    if attributes is not None:
+        result["meta"] = {"text": [json.dumps(attributes)]}
+    return result
+
+
 def _label_studio(frames: list[_Frame], out: Path, prefix: str) -> int:
     tasks, count = [], 0
     classes = sorted(set(REVIEW_CLASSES) | {lb["class_2d"] for f in frames
@@ -322,18 +364,16 @@ def _label_studio(frames: list[_Frame], out: Path, prefix: str) -> int:
         for index, label in enumerate(frame.selected.labels["labels"]):
             if label["box_2d"] is None:
                 continue
-            x1, y1, x2, y2 = label["box_2d"]
-            results.append({
-                "id": f"{frame.id}-{index}", "type": "rectanglelabels",
-                "from_name": "label", "to_name": "image",
-                "original_width": width, "original_height": height, "image_rotation": 0,
-                "value": {"x": 100 * x1 / width, "y": 100 * y1 / height,
-                          "width": 100 * (x2 - x1) / width, "height": 100 * (y2 - y1) / height,
-                          "rotation": 0, "rectanglelabels": [label["class_2d"]]},
-                "score": float(label["score_2d"]),
-                "meta": {"text": [json.dumps(_attributes(label, frame.selected.record
-                                                         .model_version))]},
-            })  # fmt: skip
+            results.append(
+                rectangle_result(
+                    f"{frame.id}-{index}",
+                    label["box_2d"],
+                    label["class_2d"],
+                    label["score_2d"],
+                    (width, height),
+                    _attributes(label, frame.selected.record.model_version),
+                )
+            )
             scores.append(float(label["score_2d"]))
             count += 1
         record = frame.selected.record

@@ -112,12 +112,26 @@ def import_review(
     source = Path(source)
     if not source.exists():
         raise FileNotFoundError(f"--from {source}: no such file or directory")
-    stored = {r.key: r for r in list_frames(store)}
     problems: list[str] = []
     if format == "label-studio":
-        items = _label_studio_items(source, problems)
+        items = label_studio_items(_label_studio_tasks(source), problems)
     else:
         items = _cvat_items(source, format, problems)
+    return store_reviews(store, items, format, classes, problems, str(source))
+
+
+def store_reviews(
+    store: Store,
+    items: list,
+    format: str,
+    classes: Iterable[str] = REVIEW_CLASSES,
+    problems: list[str] | None = None,
+    source: str = "the export",
+) -> ImportSummary:
+    """Check every (item id, meta, labels) of a reviewed export against the store and store
+    them as human labels, all or nothing (`ReviewImportError` naming every problem)."""
+    problems = [] if problems is None else problems
+    stored = {r.key: r for r in list_frames(store)}
     known = set(classes)
     reviews = []
     for item_id, meta, labels in items:
@@ -244,7 +258,7 @@ def _related_camera(source: Path, item_id: str) -> dict | None:
     return None
 
 
-def _label_studio_items(source: Path, problems: list[str]) -> list:
+def _label_studio_tasks(source: Path) -> list:
     try:
         tasks = json.loads(source.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -252,6 +266,12 @@ def _label_studio_items(source: Path, problems: list[str]) -> list:
                                 f"export ({error})") from None  # fmt: skip
     if not isinstance(tasks, list):
         raise ReviewImportError(f"nothing was imported: {source} is not a list of tasks")
+    return tasks
+
+
+def label_studio_items(tasks: list, problems: list[str]) -> list:
+    """Label Studio tasks (its JSON export, or a webhook's task with its annotation) -> the
+    (item id, meta, labels) of each reviewed one: its latest annotation's boxes."""
     found = []
     for number, task in enumerate(tasks):
         data = task.get("data", {}) if isinstance(task, dict) else {}
@@ -268,11 +288,17 @@ def _label_studio_items(source: Path, problems: list[str]) -> list:
         for result in latest.get("result", []):
             if result.get("type") != "rectanglelabels":
                 continue
-            value = result["value"]
-            width, height = result["original_width"], result["original_height"]
-            x1, y1 = value["x"] * width / 100, value["y"] * height / 100
-            box = [x1, y1, x1 + value["width"] * width / 100, y1 + value["height"] * height / 100]
-            for name in value.get("rectanglelabels", []):
+            try:
+                value = result["value"]
+                width, height = float(result["original_width"]), float(result["original_height"])
+                x1, y1 = float(value["x"]) * width / 100, float(value["y"]) * height / 100
+                box = [x1, y1, x1 + float(value["width"]) * width / 100,
+                       y1 + float(value["height"]) * height / 100]  # fmt: skip
+                names = [str(name) for name in value.get("rectanglelabels", [])]
+            except (KeyError, TypeError, ValueError, AttributeError) as error:
+                problems.append(f"{item_id}: a malformed rectangle result ({error!r})")
+                continue
+            for name in names:
                 labels.append({"class": name, "box_3d": None,
                                "box_2d": [round(float(v), 4) for v in box]})  # fmt: skip
         reviewer = latest.get("completed_by")

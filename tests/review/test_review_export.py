@@ -50,6 +50,8 @@ def test_a_cvat_3d_export_imports_with_datumaro_as_the_stored_labels(store, tmp_
     dataset = dm.Dataset.import_from(str(out), "sly_pointcloud")
     classes = dataset.categories()[dm.AnnotationType.label]
     assert {item.id for item in dataset} == set(stored)
+    labels_spec = json.loads((out / "cvat_labels.json").read_text())
+    assert all(lb["type"] == "cuboid" for lb in labels_spec)
     for item in dataset:
         got = sorted((classes[c.label].name, [*c.position, *c.scale, c.rotation[2]],
                       c.attributes) for c in item.annotations)  # fmt: skip
@@ -61,6 +63,9 @@ def test_a_cvat_3d_export_imports_with_datumaro_as_the_stored_labels(store, tmp_
             assert attributes["provenance"] in ("matched", "lidar_only_confident",
                                                 "lidar_only_outside_view")  # fmt: skip
             assert attributes["model_version"] == "000001"
+            # the task's label specification declares every class and attribute it carries
+            (spec,) = [lb for lb in labels_spec if lb["name"] == name]
+            assert {a["name"] for a in spec["attributes"]} == set(attributes)
         (image,) = item.media.extra_images
         assert image.data.shape[2] == 3
     # the related image's calibration: K . E projects LiDAR points as P2 . R0 . Tr does
