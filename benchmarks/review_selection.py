@@ -16,8 +16,10 @@ range; a label overlapping a Van or DontCare box by IoU >= 0.5 is not counted fa
 For budgets of 5 % and 10 % of the frames: the share of all errors (and of each kind) in the
 frames that `--select disagreement` (cross-modal), `--select least-confident` (lowest mean 3D
 score) and `--select random` (mean of --random-draws seeds) pick. Target: disagreement >= 2x
-random and above least-confident at both budgets. The oracle row (the frames holding the most
-errors) is the most any selection of that size can reach.
+random and above least-confident at both budgets. Two reference rows: summed doubt (the sum
+of 1 - 3D score over a frame's labels, a stronger single-modality ranking than the mean) and
+the oracle (the frames holding the most errors: the most any selection of that size can
+reach).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ IGNORED = ("Van", "DontCare", "Misc", "Truck", "Tram", "Person_sitting")
 KINDS = ("missed", "false", "wrong class", "loose")
 SELECTIONS = ("disagreement", "least-confident", "random")
 ORACLE = "oracle (most true errors)"
+SUMMED = "summed doubt (sum of 1 - 3D score)"
 
 
 def frame_errors(labels: dict, truth_names: np.ndarray, truth_boxes: np.ndarray,
@@ -132,6 +135,14 @@ def main() -> None:
                     per_kind[kind].append(held[kind] / max(total[kind], 1))
                 per_kind["all"].append(sum(held.values()) / max(total_all, 1))
             shares[selection] = {kind: float(np.mean(v)) for kind, v in per_kind.items()}
+        # A stronger single-modality ranking than the mean: the sum of (1 - 3D score) over a
+        # frame's labels (more doubtful labels, more errors); not a product selection.
+        doubt = {s.record.key: sum(1 - r["score_3d"] for r in s.labels["labels"])
+                 for s in everything}  # fmt: skip
+        summed = sorted(doubt, key=lambda key: (-doubt[key], key))[:count]
+        shares[SUMMED] = {kind: sum(errors[k][kind] for k in summed) / max(total[kind], 1)
+                          for kind in KINDS}  # fmt: skip
+        shares[SUMMED]["all"] = sum(sum(errors[k].values()) for k in summed) / max(total_all, 1)
         best = sorted(errors, key=lambda key: -sum(errors[key].values()))[:count]
         shares[ORACLE] = {kind: sum(errors[k][kind] for k in best) / max(total[kind], 1)
                           for kind in KINDS}  # fmt: skip
@@ -144,7 +155,7 @@ def main() -> None:
     print("| ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
     for row in rows:
         random_share = row["shares"]["random"]["all"]
-        for selection in (*SELECTIONS, ORACLE):
+        for selection in (*SELECTIONS, SUMMED, ORACLE):
             share = row["shares"][selection]
             print(f"| {row['budget']:.0%} | {row['frames']} | {selection} | {share['all']:.1%} | "
                   + " | ".join(f"{share[k]:.1%}" for k in KINDS)

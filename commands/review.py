@@ -97,8 +97,8 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--select", default="all", choices=REVIEW_SELECTIONS,
                         help="all frames of the filters; a random audit sample; the frames "
                         "whose labels have the lowest 3D scores; or the frames where the camera "
-                        "and the LiDAR disagree most (camera-only detections, unconfirmed "
-                        "LiDAR-only labels in view, class disagreements, weak matches); all "
+                        "and the LiDAR disagree most (labels the camera did not confirm, class "
+                        "disagreements, weak matches; camera-only detections break ties); all "
                         "but the first need --budget")  # fmt: skip
     parser.add_argument("--budget", type=int, help="frames to select")
     parser.add_argument("--seed", type=int, default=0, help="the random sample's seed")

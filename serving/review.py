@@ -120,17 +120,19 @@ def low_confidence(labels: dict[str, Any]) -> tuple[float, str]:
 
 
 def disagreement(labels: dict[str, Any]) -> tuple[float, str]:
-    """Where the two teachers disagree, so the labels are most likely wrong: 2D detections no
-    label took (the camera saw something the LiDAR labels lack), LiDAR-only labels inside the
-    camera's view (the camera did not confirm them), matched pairs whose classes differ, and
-    matched pairs whose matching cost is over half of tau_hung (boxes that barely agree).
-    The score is their count; the reason names each."""
+    """Where the two teachers disagree, so the labels are most likely wrong: labels the camera
+    did not confirm (LiDAR-only labels, inside the camera's view or outside it), matched pairs
+    whose classes differ, and matched pairs whose matching cost is over half of tau_hung
+    (boxes that barely agree). The score is their count; 2D detections no label took (the
+    camera saw something the labels lack) break ties. The reason names each count."""
     records = labels["labels"]
     tau_hung = labels["thresholds"].get("tau_hung") or 1.0
     counts = {
-        "camera-only detections": len(labels.get("unmatched_2d", [])),
         "unconfirmed LiDAR-only labels in view": sum(
             r["provenance"] == "lidar_only_confident" for r in records
+        ),
+        "LiDAR-only labels outside the camera's view": sum(
+            r["provenance"] == "lidar_only_outside_view" for r in records
         ),
         "class disagreements": sum(
             r["provenance"] == "matched" and r["class_2d"] != r["class_3d"] for r in records
@@ -139,8 +141,12 @@ def disagreement(labels: dict[str, Any]) -> tuple[float, str]:
             r["provenance"] == "matched" and r["cost"] > tau_hung / 2 for r in records
         ),
     }
-    reason = ", ".join(f"{n} {what}" for what, n in counts.items() if n) or "no disagreement"
-    return float(sum(counts.values())), reason
+    camera_only = len(labels.get("unmatched_2d", []))
+    reason = [f"{n} {what}" for what, n in counts.items() if n]
+    reason += [f"{camera_only} camera-only detections"] if camera_only else []
+    return float(sum(counts.values())) + min(camera_only, 999) / 1000, (
+        ", ".join(reason) or "no disagreement"
+    )
 
 
 def _labels(store: Store, record: StoredFrame) -> dict[str, Any]:

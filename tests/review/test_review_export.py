@@ -169,7 +169,10 @@ def test_each_disagreement_signal_counts():
         "unmatched_2d": [{"class_2d": "Cyclist", "box_2d": [0, 0, 9, 9], "score_2d": 0.7}] * 2,
     }  # fmt: skip
     assert disagreement(loud) == (
-        5.0,
-        "2 camera-only detections, 1 unconfirmed LiDAR-only "
-        "labels in view, 1 class disagreements, 1 weak matches",
+        4.002,
+        "1 unconfirmed LiDAR-only labels in view, 1 LiDAR-only labels outside the camera's "
+        "view, 1 class disagreements, 1 weak matches, 2 camera-only detections",
     )
+    # camera-only detections break ties between frames with as many unconfirmed labels
+    seen = {**calm, "unmatched_2d": loud["unmatched_2d"][:1]}
+    assert disagreement(seen)[0] > disagreement(calm)[0] and disagreement(seen)[0] < 1
