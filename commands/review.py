@@ -17,8 +17,8 @@ from detmatch.constants import (
 # What `detmatch review export` writes into --out (removed first by --overwrite).
 REVIEW_OUTPUTS = (
     "ds0", "meta.json", "key_id_map.json", "tracklet_labels.xml", "frame_list.txt",
-    "velodyne_points", "image_00", "images", "tasks.json", "label_config.xml", "review.json",
-    "cvat_labels.json",
+    "annotations", "point_clouds", "velodyne_points", "image_00", "images", "tasks.json",
+    "label_config.xml", "review.json", "cvat_labels.json",
 )  # fmt: skip
 
 
@@ -92,7 +92,8 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--format", required=True, choices=REVIEW_FORMATS,
                         help="cvat-3d: Sly Point Cloud 1.0 (CVAT's 3D import with the camera's "
-                        "calibration); kitti-raw: Kitti Raw Format 1.0; label-studio: tasks.json "
+                        "calibration); kitti-raw: Kitti Raw Format 1.0; datumaro-3d: Datumaro "
+                        "3D 1.0 (the camera image, no calibration); label-studio: tasks.json "
                         "and label_config.xml")  # fmt: skip
     parser.add_argument("--select", default="all", choices=REVIEW_SELECTIONS,
                         help="all frames of the filters; a random audit sample; the frames "
@@ -118,7 +119,8 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     )
     add_store_options(parser, True, "label store")
     parser.add_argument("--from", dest="source", required=True,
-                        help="CVAT's export directory (cvat-3d: Sly Point Cloud; kitti-raw), or "
+                        help="CVAT's export directory (cvat-3d: Sly Point Cloud; kitti-raw; "
+                        "datumaro-3d), or "
                         "Label Studio's JSON export file")  # fmt: skip
     parser.add_argument("--format", required=True, choices=REVIEW_FORMATS)
     parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),

@@ -26,7 +26,8 @@ IMAGE_STD = (0.229, 0.224, 0.225)
 # `detmatch review export` (serving.review): its formats and frame selections, and the path
 # Label Studio serves files under LOCAL_FILES_DOCUMENT_ROOT at (here so that building the
 # command line imports nothing of the service).
-REVIEW_FORMATS = ("cvat-3d", "kitti-raw", "label-studio")
+REVIEW_FORMATS = ("cvat-3d", "kitti-raw", "datumaro-3d", "label-studio")
+REVIEW_3D_FORMATS = ("cvat-3d", "kitti-raw", "datumaro-3d")  # CVAT's 3D formats (datumaro)
 REVIEW_SELECTIONS = ("all", "random", "least-confident", "disagreement")
 LABEL_STUDIO_LOCAL_FILES = "/data/local-files/?d="
 # The labels a reviewer can choose from in an exported review set (with any other class the

@@ -48,7 +48,8 @@ from serving.store_export import Store, list_frames, read_frame
 from serving.store_layout import FRAME_FILES, StoredFrame
 
 FORMATS, SELECTIONS = REVIEW_FORMATS, REVIEW_SELECTIONS
-DATUMARO_FORMAT = {"cvat-3d": "sly_pointcloud", "kitti-raw": "kitti_raw"}
+DATUMARO_FORMAT = {"cvat-3d": "sly_pointcloud", "kitti-raw": "kitti_raw",
+                   "datumaro-3d": "datumaro"}  # fmt: skip
 ROUNDING_DIGITS = 6
 MANIFEST = "review.json"
 CVAT_LABELS = "cvat_labels.json"  # the CVAT task's label specification

@@ -33,17 +33,17 @@ from typing import Any
 
 import numpy as np
 
-from detmatch.constants import REVIEW_CLASSES
+from detmatch.constants import REVIEW_3D_FORMATS, REVIEW_CLASSES, REVIEW_FORMATS
 from detmatch.data.kitti import read_calib
 from detmatch.files import atomic_write_bytes, fsync_path
-from serving.review import camera_matrices
+from serving.review import DATUMARO_FORMAT, camera_matrices
 from serving.store_export import Store, list_frames, read_frame
 from serving.store_index import store_files_root
 
 REVIEWS_DIR = "reviews"
 JOURNAL_PREFIX = ".import-"
 ID_SEPARATOR = "__"
-IMPORT_FORMATS = ("cvat-3d", "kitti-raw", "label-studio")
+IMPORT_FORMATS = REVIEW_FORMATS
 # A related image's matrices and the stored calibration's may differ by the export's rounding.
 CALIBRATION_TOLERANCE = 1e-5
 
@@ -217,7 +217,7 @@ def _cvat_items(source: Path, format: str, problems: list[str]) -> list:
         raise ValueError("CVAT's formats are read with datumaro: pip install "
                          "'detmatch[review]'") from None  # fmt: skip
     annotation.COORDINATE_ROUNDING_DIGITS = 6
-    name = "sly_pointcloud" if format == "cvat-3d" else "kitti_raw"
+    name = DATUMARO_FORMAT[format]
     try:
         dataset = dm.Dataset.import_from(str(source), name)
         items = list(dataset)
@@ -366,7 +366,7 @@ def review_digest(record: dict) -> str:
 def has_3d_review(record: dict) -> bool:
     """A review that fixes a frame's 3D labels: a CVAT one (its boxes, possibly none: the
     reviewer found nothing); a Label Studio review has 2D boxes only."""
-    return record["source"] in ("cvat-3d", "kitti-raw")
+    return record["source"] in REVIEW_3D_FORMATS
 
 
 def human_label_rows(record: dict, calib, image_size: tuple[int, int]):

@@ -20,11 +20,13 @@ else:
 from commands.main import main  # noqa: E402
 from detmatch.data.kitti import KittiDataset  # noqa: E402
 from serving.review import (  # noqa: E402
+    DATUMARO_FORMAT,
     camera_matrices,
     disagreement,
     export_review,
     select_frames,
 )
+from serving.reviews import import_review, read_human_labels  # noqa: E402
 from serving.store import list_frames  # noqa: E402
 from tests.conftest import KITTI_SAMPLE  # noqa: E402
 
@@ -84,19 +86,32 @@ def test_a_cvat_3d_export_imports_with_datumaro_as_the_stored_labels(store, tmp_
     assert not np.allclose(camera_matrices(calib)[1], 0)
 
 
-def test_a_kitti_raw_export_imports_with_datumaro(store, tmp_path):
+@pytest.mark.parametrize("format", ["kitti-raw", "datumaro-3d"])
+def test_kitti_raw_and_datumaro_3d_exports_import_with_datumaro(store, tmp_path, format):
     from datumaro.components import annotation
 
     out = tmp_path / "raw"
-    export_review(store, out, "kitti-raw", select_frames(store, namespace="default"))
+    export_review(store, out, format, select_frames(store, namespace="default"))
     annotation.COORDINATE_ROUNDING_DIGITS = 6
-    dataset = dm.Dataset.import_from(str(out), "kitti_raw")
+    dataset = dm.Dataset.import_from(str(out), DATUMARO_FORMAT[format])
     stored = _stored_boxes(store)
     assert {item.id for item in dataset} == {k for k in stored if k.startswith("default__")}
     for item in dataset:
         got = sorted([*c.position, *c.scale, c.rotation[2]] for c in item.annotations)
         want = sorted(box for _, box in stored[item.id])
         np.testing.assert_allclose(got, want, atol=1e-4)
+        if format == "datumaro-3d":  # Datumaro 3D keeps the camera image
+            (image,) = item.media.extra_images
+            assert image.data.shape[2] == 3
+    # an accepted review comes back as human 3D labels, the boxes the store holds
+    summary = import_review(store, out, format)
+    assert len(summary.created) == 3
+    human = read_human_labels(store)
+    for key, record in human.items():
+        assert record["source"] == format
+        np.testing.assert_allclose(sorted(lb["box_3d"] for lb in record["labels"]),
+                                   sorted(box for _, box in stored["__".join(key)]),
+                                   atol=1e-4)  # fmt: skip
 
 
 def test_label_studio_tasks_carry_the_stored_2d_boxes_as_predictions(store, tmp_path):
