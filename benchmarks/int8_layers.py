@@ -27,7 +27,13 @@ import numpy as np
 from benchmarks.harness import benchmark_parser, rerun
 from detmatch.data.kitti import KittiDataset, read_image_set
 from detmatch.models.pillars import pillarize
-from export.quantize import QUANTIZED_OPS, _Feeds, float_layers, label_agreement
+from export.quantize import (
+    QUANTIZED_OPS,
+    _Feeds,
+    consumers_of,
+    float_layers,
+    label_agreement,
+)
 from serving.labeler import INPUTS_3D, Labeler
 
 
@@ -46,10 +52,7 @@ def _first_and_head_layers(path: Path) -> list[str]:
     import onnx
 
     graph = onnx.load(str(path), load_external_data=False).graph
-    consumers: dict[str, list] = {}
-    for node in graph.node:
-        for name in node.input:
-            consumers.setdefault(name, []).append(node)
+    consumers = consumers_of(graph)
     layers = [n for n in graph.node if n.op_type in QUANTIZED_OPS]
     reached: dict[str, set[str]] = {}
     for layer in layers:

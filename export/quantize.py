@@ -65,16 +65,22 @@ class _Feeds:
         return next(self._feeds, None)
 
 
+def consumers_of(graph) -> dict[str, list]:
+    """An ONNX graph's tensor name -> the nodes that read it."""
+    consumers: dict[str, list] = {}
+    for node in graph.node:
+        for name in node.input:
+            consumers.setdefault(name, []).append(node)
+    return consumers
+
+
 def float_layers(model_path: Path) -> list[str]:
     """The quantizable nodes that stay float: the first one (in graph order) and every one
     from which no other quantizable node is reachable (the heads' output layers)."""
     import onnx
 
     graph = onnx.load(str(model_path), load_external_data=False).graph
-    consumers: dict[str, list] = {}
-    for node in graph.node:
-        for name in node.input:
-            consumers.setdefault(name, []).append(node)
+    consumers = consumers_of(graph)
     layers = [n for n in graph.node if n.op_type in QUANTIZED_OPS]
 
     def feeds_another(node) -> bool:

@@ -43,6 +43,16 @@ def label_studio_executable() -> str:
     pytest.skip("no Label Studio server: set $DETMATCH_LABEL_STUDIO (see .ci/run)")
 
 
+def stop(process: subprocess.Popen, timeout_s: float) -> None:
+    """SIGTERM, then SIGKILL after timeout_s."""
+    process.terminate()
+    try:
+        process.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -106,12 +116,7 @@ def label_studio_server(directory: Path) -> Iterator[LabelStudio]:
             time.sleep(1)
         yield server
     finally:
-        process.terminate()
-        try:
-            process.wait(30)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop(process, 30)
         log.close()
 
 
@@ -155,12 +160,7 @@ def backend_process(*args: str) -> Iterator[tuple[str, list[str]]]:
                          daemon=True).start()  # fmt: skip
         yield match.group(1), lines
     finally:
-        process.terminate()
-        try:
-            process.wait(60)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop(process, 60)
 
 
 def http_json(method: str, url: str, body=None, timeout: float = 120.0) -> tuple[int, dict]:

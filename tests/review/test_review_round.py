@@ -27,7 +27,6 @@ from retrain.report import data_table  # noqa: E402
 from retrain.snapshot import store_snapshot  # noqa: E402
 from serving.review import export_review, select_frames  # noqa: E402
 from serving.reviews import import_review, read_human_labels  # noqa: E402
-from tests.retrain.conftest import round_data  # noqa: E402, F401
 from tests.review.test_review_import import _label_studio_export  # noqa: E402
 
 SOURCES = SourceSplits("labeled", "unlabeled", "val")
@@ -43,7 +42,7 @@ def _review_in_cvat(store, tmp_path, frame_id):
 
 
 @pytest.mark.parametrize("gate_fraction", [0.0, 0.999])
-def test_a_3d_review_makes_a_labeled_frame(store, tmp_path, round_data, gate_fraction):  # noqa: F811
+def test_a_3d_review_makes_a_labeled_frame(store, tmp_path, round_data, gate_fraction):
     before = store_snapshot(store)
     _review_in_cvat(store, tmp_path, "000001")
     after = store_snapshot(store)
@@ -67,7 +66,7 @@ def test_a_3d_review_makes_a_labeled_frame(store, tmp_path, round_data, gate_fra
     assert "| human-reviewed stored frames" in data_table(data)
 
 
-def test_a_2d_review_leaves_its_frame_in_the_pool(store, tmp_path, round_data):  # noqa: F811
+def test_a_2d_review_leaves_its_frame_in_the_pool(store, tmp_path, round_data):
     import json
 
     tasks = _label_studio_export(store, tmp_path)
