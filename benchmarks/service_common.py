@@ -130,15 +130,20 @@ def serve(
         process.stdout.close()
 
 
-def sample_requests(store: bool = True, prefix: str = "") -> list:
-    """One LabelFrameRequest per KITTI sample frame (frame ids prefix + the KITTI id)."""
+def sample_requests(store: bool = True, prefix: str = "", raw_image: bool = False) -> list:
+    """One LabelFrameRequest per KITTI sample frame (frame ids prefix + the KITTI id); raw_image:
+    the pixels uncompressed instead of the PNG files."""
     from serving.client import kitti_frame
     from serving.messages import request_message
     from serving.request import LabelOptions
 
     options = LabelOptions(store=store)
     return [
-        request_message(kitti_frame(KITTI_SAMPLE, i, send_as=f"{prefix}{i}", options=options))
+        request_message(
+            kitti_frame(
+                KITTI_SAMPLE, i, send_as=f"{prefix}{i}", options=options, raw_image=raw_image
+            )
+        )  # fmt: skip
         for i in SAMPLE_IDS
     ]
 

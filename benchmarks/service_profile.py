@@ -1,8 +1,9 @@
 """Where a loaded server's CPU goes per LabelFrame call, store on and off: `py-spy` samples
 `detmatch serve` (a subprocess) while one client sends the three KITTI sample frames (full
-resolution) one call after another.
+resolution) one call after another, as PNG files and as raw pixels (raw_image).
 
     python -m benchmarks.service_profile [--seconds 20] [--config configs/synth_cpu.toml]
+        [--images png raw]
 
 Every sampled stack of an active server thread (threads waiting on a queue, a condition or
 epoll are left out) is put in the first stage (in the order of STAGES) whose marker its
@@ -37,7 +38,7 @@ STAGES = (
     ("pillarize", ("pillarize",), ()),
     ("2D/3D outputs and inputs", ("detect_2d", "detect_3d"), ()),
     ("matching", ("match_detections",), ()),
-    ("image decode", ("decode_image",), ()),
+    ("image decode", ("decode_image", "decode_raw_image"), ()),
     ("points decode", ("decode_points",), ()),
     ("calibration and ids", ("decode_calibration", "decode_frame_id", "decode_namespace"), ()),
     ("proto -> request", ("frame_request",), ()),
@@ -64,11 +65,14 @@ def stage_of(stack: str) -> str | None:
     return "gRPC, event loop, other"
 
 
-def profile(target: str, pid: int, seconds: float, store: bool, rate: int, out: Path) -> dict:
-    """Record the server while one client labels frames; the per-stage figures."""
+def profile(
+    target: str, pid: int, seconds: float, store: bool, rate: int, out: Path, image: str = "png"
+) -> dict:
+    """Record the server while one client labels frames (image: "png", the files as they
+    are, or "raw", their pixels uncompressed); the per-stage figures."""
     from serving.client import pb2_grpc
 
-    requests = sample_requests(store=store, prefix="p" if store else "")
+    requests = sample_requests(store=store, prefix="p" if store else "", raw_image=image == "raw")
     frames, stop = [0], threading.Event()
 
     def client() -> None:
@@ -107,7 +111,7 @@ def profile(target: str, pid: int, seconds: float, store: bool, rate: int, out: 
     total = sum(samples.values())
     ms = {name: cpu_ms * n / total for name, n in samples.items()}
     graphs = sum(ms.get(name, 0.0) for name in GRAPHS)
-    return {"store": store, "frames": labeled, "server_cpu_ms_per_frame": cpu_ms,
+    return {"image": image, "store": store, "frames": labeled, "server_cpu_ms_per_frame": cpu_ms,
             "samples": total, "graphs_ms_per_frame": graphs,
             "stages_ms_per_frame": dict(sorted(ms.items(), key=lambda kv: -kv[1]))}  # fmt: skip
 
@@ -120,6 +124,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1,
                         help="onnxruntime threads per run (1: all its CPU sampled)")  # fmt: skip
+    parser.add_argument("--images", nargs="+", choices=("png", "raw"), default=["png", "raw"],
+                        help="how the client sends the image: the PNG files, or their pixels "
+                        "uncompressed (raw_image)")  # fmt: skip
     parser.add_argument("--work", help="working directory (default: a temporary one)")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
@@ -130,14 +137,17 @@ def main() -> None:
     results = []
     flags = ("--workers", str(args.workers), "--threads", str(args.threads))
     with serve(repository, work / "store", *flags) as server:
-        for store in (False, True):
-            out = work / f"profile_store_{'on' if store else 'off'}.txt"
-            results.append(profile(server.target, server.pid, args.seconds, store, args.rate, out))
+        for image in args.images:
+            for store in (False, True):
+                out = work / f"profile_{image}_store_{'on' if store else 'off'}.txt"
+                results.append(profile(server.target, server.pid, args.seconds, store, args.rate,
+                                       out, image))  # fmt: skip
     names = list(dict.fromkeys(n for r in results for n in r["stages_ms_per_frame"]))
     print(f"model {args.config}, {' '.join(flags)}, one client, {args.seconds:.0f} s per mode "
           f"at {args.rate} samples/s\n")  # fmt: skip
-    print("| stage | store off ms / frame | store on ms / frame |")
-    print("| --- | ---: | ---: |")
+    columns = [f"{r['image']}, store {'on' if r['store'] else 'off'}" for r in results]
+    print(f"| stage (ms / frame) | {' | '.join(columns)} |")
+    print("| --- |" + " ---: |" * len(results))
     for name in names:
         cells = [f"{r['stages_ms_per_frame'].get(name, 0.0):.1f}" for r in results]
         print(f"| {name} | {' | '.join(cells)} |")
@@ -146,8 +156,8 @@ def main() -> None:
         print(f"| **{label}** | {' | '.join(f'{r[key]:.1f}' for r in results)} |")
     for r in results:
         ratio = r["server_cpu_ms_per_frame"] / r["graphs_ms_per_frame"]
-        print(f"\nstore {'on' if r['store'] else 'off'}: {r['frames']} frames; server CPU / "
-              f"graphs = {ratio:.2f}")  # fmt: skip
+        print(f"\n{r['image']}, store {'on' if r['store'] else 'off'}: {r['frames']} frames; "
+              f"server CPU / graphs = {ratio:.2f}")  # fmt: skip
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
     print(f"\nrerun: {rerun('service_profile')}")

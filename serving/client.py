@@ -66,12 +66,13 @@ class LabelingClient:
         namespace: str | None = None,
         store: bool = True,
         timeout_s: float | None = None,
+        raw_image: bool = False,
     ):
         """Send frame_id of a KITTI-layout directory (training/image_2, velodyne, calib),
-        under the id send_as if given. Other options: label_frame(kitti_frame(...))."""
-        request = kitti_frame(
-            root, frame_id, send_as=send_as, namespace=namespace, options=LabelOptions(store=store)
-        )
+        under the id send_as if given; raw_image: the decoded pixels instead of the file. Other
+        options: label_frame(kitti_frame(...))."""
+        request = kitti_frame(root, frame_id, send_as=send_as, namespace=namespace,
+                              options=LabelOptions(store=store), raw_image=raw_image)  # fmt: skip
         return self.label_frame(request, timeout_s)
 
     def model_info(self):
@@ -96,11 +97,13 @@ def kitti_frame(
     send_as: str | None = None,
     namespace: str | None = None,
     options: LabelOptions = DEFAULT_OPTIONS,
+    raw_image: bool = False,
 ) -> FrameRequest:
-    """The request for frame_id of a KITTI-layout directory, under the id send_as if given."""
+    """The request for frame_id of a KITTI-layout directory, under the id send_as if given;
+    raw_image: the image's pixels uncompressed (RawImage) instead of its file's bytes."""
     dataset = KittiDataset(Path(root))
     frame = dataset.load_frame(frame_id, with_labels=False)
-    image = dataset.image_path(frame_id).read_bytes()
+    image = frame.image if raw_image else dataset.image_path(frame_id).read_bytes()
     return FrameRequest.from_arrays(
         send_as or frame_id, image, frame.points, frame.calib, namespace=namespace, options=options
     )

@@ -1,11 +1,12 @@
 """Wire formats of docs/design.md §7 -> the labeler's arrays, with errors naming the field.
 
-Images: PNG or JPEG bytes -> (H, W, 3) uint8 RGB. Points: raw little-endian float32 bytes,
-N x 4 (x, y, z, intensity) -> (N, 4) float32. Calibration: P2 (12), R0_rect (9),
-Tr_velo_to_cam (12) row-major doubles -> Calibration, refused when a matrix cannot be a
-camera projection or a rigid transform. Frame ids and namespaces: 1-64 letters, digits, '_'
-or '-'. Every error is `InvalidInput` whose message starts with the field's name, and never
-echoes more than a short excerpt of what the client sent.
+Images: PNG or JPEG bytes, or raw RGB pixels (a view, no decode) -> (H, W, 3) uint8 RGB.
+Points: raw little-endian float32 bytes, N x 4 (x, y, z, intensity) -> (N, 4) float32.
+Calibration: P2 (12), R0_rect (9), Tr_velo_to_cam (12) row-major doubles -> Calibration,
+refused when a matrix cannot be a camera projection or a rigid transform. Frame ids and
+namespaces: 1-64 letters, digits, '_' or '-'. Every error is `InvalidInput` whose message
+starts with the field's name, and never echoes more than a short excerpt of what the client
+sent.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> tup
     """PNG or JPEG bytes -> ((H, W, 3) uint8 RGB, 'png' or 'jpeg'). The header's size is
     checked against max_pixels before anything is decoded."""
     if not data:
-        raise InvalidInput("image: empty; send PNG or JPEG bytes")
+        raise InvalidInput("image: empty; send PNG or JPEG bytes (or the pixels as raw_image)")
     if data.startswith(PNG_MAGIC):
         kind = "png"
     elif data.startswith(JPEG_MAGIC):
@@ -113,6 +114,20 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> tup
     if pixels.ndim != 3 or pixels.shape[0] < 1 or pixels.shape[1] < 1:
         raise InvalidInput(f"image: empty image of shape {pixels.shape}")
     return pixels, kind
+
+
+def decode_raw_image(
+    width: int, height: int, data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+) -> np.ndarray:
+    """Uncompressed 8-bit RGB, height x width x 3 bytes -> (H, W, 3) uint8, a read-only view of
+    data (nothing decoded or copied)."""
+    if width < 1 or height < 1:
+        raise InvalidInput(f"raw_image: {width} x {height} pixels; width and height must be >= 1")
+    _check_pixels(width, height, max_pixels)
+    if len(data) != width * height * 3:
+        raise InvalidInput(f"raw_image: rgb holds {len(data)} bytes; {width} x {height} RGB "
+                           f"pixels are {width * height * 3}")  # fmt: skip
+    return np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3)
 
 
 def _decode_rgb8_png(data: bytes) -> np.ndarray | None:

@@ -6,7 +6,7 @@ None (the manifest's value), an unset `options.store` is True.
 from __future__ import annotations
 
 from serving.proto import load as load_stubs
-from serving.request import FrameRequest, LabelOptions
+from serving.request import FrameRequest, LabelOptions, RawImage
 
 pb2, _ = load_stubs()
 OVERRIDES = ("score_threshold_2d", "score_threshold_3d", "tau_hung")
@@ -30,6 +30,9 @@ def request_message(request: FrameRequest) -> pb2.LabelFrameRequest:
     )
     if request.namespace is not None:
         message.namespace = request.namespace
+    if request.raw_image is not None:
+        raw = request.raw_image
+        message.raw_image.CopyFrom(pb2.RawImage(width=raw.width, height=raw.height, rgb=raw.rgb))
     return message
 
 
@@ -51,7 +54,9 @@ def frame_request(message: pb2.LabelFrameRequest) -> FrameRequest:
             **{name: _optional(options, name) for name in OVERRIDES},
             store=options.store if options.HasField("store") else True,
         ),
-    )
+        raw_image=RawImage(message.raw_image.width, message.raw_image.height,
+                           message.raw_image.rgb) if message.HasField("raw_image") else None,
+    )  # fmt: skip
 
 
 def _optional(message, name: str) -> float | None:

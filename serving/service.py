@@ -26,6 +26,7 @@ from serving.decode import (
     decode_image,
     decode_namespace,
     decode_points,
+    decode_raw_image,
 )
 from serving.errors import InvalidInput, ModelUnavailable
 from serving.labeler import FrameLabels, Labeler
@@ -67,7 +68,8 @@ class ModelSlot:
 @dataclass(frozen=True)
 class DecodedFrame:
     """A request's fields, decoded and checked. image, points_bytes: the bytes as sent (PNG or
-    JPEG; little-endian float32 N x 4, what the store writes without another copy)."""
+    JPEG, empty for raw pixels; little-endian float32 N x 4, what the store writes without
+    another copy)."""
 
     namespace: str
     frame_id: str
@@ -164,7 +166,14 @@ class LabelingService:
         """InvalidInput naming the field for anything malformed."""
         namespace = decode_namespace(request.namespace)
         frame_id = decode_frame_id(request.frame_id)
-        pixels, kind = decode_image(request.image, self.max_image_pixels)
+        raw = request.raw_image
+        if raw is not None and request.image:
+            raise InvalidInput("image: set image (PNG or JPEG) or raw_image, not both")
+        if raw is not None:
+            pixels = decode_raw_image(raw.width, raw.height, raw.rgb, self.max_image_pixels)
+            kind = "raw"
+        else:
+            pixels, kind = decode_image(request.image, self.max_image_pixels)
         cloud = decode_points(request.points, self.max_points)
         calib = decode_calibration(request.p2, request.r0_rect, request.tr_velo_to_cam)
         return DecodedFrame(
@@ -208,5 +217,7 @@ def _png(pixels: np.ndarray) -> bytes:
     from PIL import Image
 
     buffer = io.BytesIO()
-    Image.fromarray(pixels, mode="RGB").save(buffer, format="PNG", compress_level=6)
+    # Level 1: 42 ms for a KITTI frame against 100 ms at Pillow's default, 914 KB against 812
+    # KB (the camera's own file: 894 KB); lossless either way.
+    Image.fromarray(pixels, mode="RGB").save(buffer, format="PNG", compress_level=1)
     return buffer.getvalue()

@@ -39,7 +39,7 @@ def check_health(target: str, service: str = "") -> int:
 LABEL_EVERYTHING = LabelOptions(score_threshold_2d=0.01, score_threshold_3d=0.01, tau_hung=10.0)
 
 
-@pytest.mark.parametrize("source", ["synthetic", "kitti"])
+@pytest.mark.parametrize("source", ["synthetic", "kitti", "kitti raw pixels"])
 def test_round_trip_matches_the_labeler_and_is_stored(server, served_labeler, synth_root, source):
     root = synth_root if source == "synthetic" else KITTI_SAMPLE
     frame_id = KittiDataset(root).ids()[0] if source == "synthetic" else "000001"
@@ -49,7 +49,10 @@ def test_round_trip_matches_the_labeler_and_is_stored(server, served_labeler, sy
         tau_hung=10.0,
     )  # fmt: skip
     with LabelingClient(server.target) as client:
-        response = client.label_frame(kitti_frame(root, frame_id, options=LABEL_EVERYTHING))
+        request = kitti_frame(root, frame_id, options=LABEL_EVERYTHING,
+                              raw_image=source.endswith("raw pixels"))  # fmt: skip
+        assert (request.raw_image is not None) == source.endswith("raw pixels")
+        response = client.label_frame(request)
     assert response.frame_id == frame_id
     assert response.model_version == served_labeler.version
     assert response.stored
@@ -119,6 +122,20 @@ def _valid_request() -> pb2.LabelFrameRequest:
     return request_message(FrameRequest.from_arrays("frame_0", _png(), points, frame.calib))
 
 
+def _raw(width: int, height: int, size: int | None = None):
+    def change(request) -> None:
+        request.image = b""
+        request.raw_image.width, request.raw_image.height = width, height
+        request.raw_image.rgb = b"\x5a" * (width * height * 3 if size is None else size)
+
+    return change
+
+
+def _both_images(request) -> None:
+    _raw(64, 32)(request)
+    request.image = _png()
+
+
 def _nan_points() -> bytes:
     points = np.zeros((5, 4), "<f4")
     points[3, 1] = np.nan
@@ -132,6 +149,10 @@ INVALID = {
     "empty image": (lambda r: setattr(r, "image", b""), "image: empty"),
     "not an image": (lambda r: setattr(r, "image", b"GIF89a" + b"0" * 50), "not PNG or JPEG"),
     "truncated PNG": (lambda r: setattr(r, "image", _png()[:40]), "cannot decode PNG"),
+    "raw pixels and a PNG": (_both_images, "image: set image (PNG or JPEG) or raw_image, not both"),
+    "raw pixels short": (_raw(64, 32, 64 * 32 * 3 - 1), "raw_image: rgb holds 6143 bytes"),
+    "raw pixels zero wide": (_raw(0, 32, 0), "raw_image: 0 x 32 pixels"),
+    "raw pixels too many": (_raw(5000, 5000, 30), "exceeds the limit of 8294400 pixels"),
     "empty cloud": (lambda r: setattr(r, "points", b""), "points: empty"),
     "wrong byte length": (lambda r: setattr(r, "points", b"\0" * 20), "multiple of 16"),
     "NaN point": (lambda r: setattr(r, "points", _nan_points()), "NaN or Inf (first at row 3)"),

@@ -18,6 +18,7 @@ from serving.decode import (
     decode_image,
     decode_namespace,
     decode_points,
+    decode_raw_image,
     encode_points,
 )
 from serving.errors import (
@@ -27,6 +28,7 @@ from serving.errors import (
     StoreError,
     status_for,
 )
+from serving.request import RawImage
 from tests.conftest import KITTI_SAMPLE
 
 
@@ -225,3 +227,18 @@ def test_a_namespace_cannot_start_with_a_dash():
     with pytest.raises(ValueError, match="invalid namespace '-rf': it starts with '-'"):
         validate_namespace("-rf")
     assert decode_namespace("drive-2024") == "drive-2024" == validate_namespace("drive-2024")
+
+
+def test_raw_pixels_are_a_view_of_the_bytes_as_sent():
+    pixels = np.random.default_rng(3).integers(0, 256, (375, 1242, 3), dtype=np.uint8)
+    raw = RawImage.from_pixels(pixels)
+    decoded = decode_raw_image(raw.width, raw.height, raw.rgb)
+    np.testing.assert_array_equal(decoded, pixels)
+    assert not decoded.flags.writeable  # a view of the request's bytes, nothing copied
+    assert np.shares_memory(decoded, np.frombuffer(raw.rgb, dtype=np.uint8))
+    with pytest.raises(InvalidInput, match="raw_image: rgb holds 11 bytes; 2 x 2 RGB pixels"):
+        decode_raw_image(2, 2, b"\0" * 11)
+    with pytest.raises(InvalidInput, match="exceeds the limit of 4 pixels"):
+        decode_raw_image(3, 2, b"\0" * 18, max_pixels=4)
+    with pytest.raises(ValueError, match=r"expected \(H, W, 3\) uint8 RGB"):
+        RawImage.from_pixels(pixels.astype(np.float32))
