@@ -31,6 +31,9 @@ def main() -> int:
         "--namespace", help="the data set the frame id belongs to (default: default)"
     )
     parser.add_argument("--no-store", action="store_true", help="label without storing")
+    parser.add_argument("--raw-image", action="store_true",
+                        help="send the image's pixels uncompressed (no decode on the server; "
+                        "for labeling without storing)")  # fmt: skip
     args = parser.parse_args()
     token = os.environ.get("DETMATCH_TOKEN") or None
     try:
@@ -39,7 +42,11 @@ def main() -> int:
             args.target, token=token, root_certificates=root_certificates
         ) as client:
             response = client.label_kitti_frame(
-                Path(args.data), args.frame, store=not args.no_store, namespace=args.namespace
+                Path(args.data),
+                args.frame,
+                store=not args.no_store,
+                namespace=args.namespace,
+                raw_image=args.raw_image,
             )
     except grpc.RpcError as error:
         hint = ""
