@@ -243,6 +243,7 @@ class Backend:
         self.new_annotations = 0
         self._labeler = None
         self._model_lock = threading.Lock()
+        self._count_lock = threading.RLock()
 
     # --- the model -------------------------------------------------------------------------
 
@@ -293,19 +294,21 @@ class Backend:
         items = label_studio_items([{**task, "annotations": [annotation]}], problems)
         summary = store_reviews(self.store, items, "label-studio", self.classes, problems,
                                 f"task {task.get('id')}")  # fmt: skip
-        self.new_annotations += 1
         answer: dict[str, Any] = {"stored": True, "created": list(summary.created),
                                   "unchanged": list(summary.unchanged),
                                   "replaced": list(summary.replaced)}  # fmt: skip
-        if self.train_after and self.new_annotations >= self.train_after:
-            answer["training"] = self.train(f"{self.new_annotations} new annotations")
+        with self._count_lock:  # webhooks run on executor threads
+            self.new_annotations += 1
+            if self.train_after and self.new_annotations >= self.train_after:
+                answer["training"] = self.train(f"{self.new_annotations} new annotations")
         return answer
 
     def train(self, reason: str) -> str:
         if self.queue is None:
             raise BadRequest("training needs --data and --store (the round's labeled frames "
                              "and its pool)")  # fmt: skip
-        self.new_annotations = 0
+        with self._count_lock:
+            self.new_annotations = 0
         return self.queue.request(reason)
 
 
