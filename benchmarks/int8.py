@@ -28,7 +28,6 @@ from benchmarks.harness import benchmark_parser, rerun
 from detmatch.data.kitti import KittiDataset, read_image_set
 from detmatch.data.selection import FrameSelection
 from detmatch.eval.kitti import evaluate_dirs
-from detmatch.models.pillars import pillarize
 
 
 def graph_times(paths: dict[str, Path], feeds: list[dict], threads: int, rounds: int) -> dict:
@@ -78,8 +77,8 @@ def main() -> None:
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
     from export.onnx_export import export_checkpoint
-    from export.quantize import quantize_version
-    from serving.labeler import INPUTS_3D, Labeler
+    from export.quantize import graph_feeds, quantize_version
+    from serving.labeler import Labeler
 
     work = Path(args.work or tempfile.mkdtemp(prefix="int8_"))
     repository, data = work / "models", Path(args.data)
@@ -96,9 +95,7 @@ def main() -> None:
     val = read_image_set(data / "ImageSets" / "val.txt")[: args.eval_frames]
     dataset = KittiDataset(data)
     sample = [dataset.load_frame(i, with_labels=False) for i in val[:8]]
-    feeds = {"2d": [{"image": np.ascontiguousarray(f.image)} for f in sample],
-             "3d": [dict(zip(INPUTS_3D, pillarize(f.points, fp32.grid).arrays, strict=True))
-                    for f in sample]}  # fmt: skip
+    feeds = graph_feeds(sample, fp32.grid)
     speed = {}
     for threads in (1, 2):
         for graph, spec in (("2d", "model_2d"), ("3d", "model_3d")):

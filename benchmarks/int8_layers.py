@@ -22,19 +22,18 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from benchmarks.harness import benchmark_parser, rerun
 from detmatch.data.kitti import KittiDataset, read_image_set
-from detmatch.models.pillars import pillarize
 from export.quantize import (
     QUANTIZED_OPS,
-    _Feeds,
-    consumers_of,
+    agreement_on,
     float_layers,
-    label_agreement,
+    graph_feeds,
+    quantizable_layers,
+    quantize_graph,
+    spread_frames,
 )
-from serving.labeler import INPUTS_3D, Labeler
+from serving.labeler import Labeler
 
 
 def _first_layer(path: Path) -> list[str]:
@@ -49,23 +48,9 @@ def _first_and_head_layers(path: Path) -> list[str]:
     """The first layer and every head layer: a layer from which exactly one output layer (a
     quantizable node feeding no other) is reachable, the heads' chains after the shared
     features branch."""
-    import onnx
-
-    graph = onnx.load(str(path), load_external_data=False).graph
-    consumers = consumers_of(graph)
-    layers = [n for n in graph.node if n.op_type in QUANTIZED_OPS]
-    reached: dict[str, set[str]] = {}
-    for layer in layers:
-        seen, found, stack = set(), set(), list(layer.output)
-        while stack:
-            for consumer in consumers.get(stack.pop(), []):
-                if id(consumer) not in seen:
-                    seen.add(id(consumer))
-                    found |= {consumer.name} if consumer.op_type in QUANTIZED_OPS else set()
-                    stack.extend(consumer.output)
-        reached[layer.name] = found
+    reached = quantizable_layers(path)
     outputs = {name for name, found in reached.items() if not found}
-    heads = [n.name for n in layers if len((reached[n.name] | {n.name}) & outputs) == 1]
+    heads = [name for name, found in reached.items() if len((found | {name}) & outputs) == 1]
     return _first_layer(path) + [n for n in heads if n not in _first_layer(path)]
 
 
@@ -87,8 +72,6 @@ CHOICES: dict[str, Choice] = {
 
 
 def main() -> None:
-    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
-
     parser = benchmark_parser(__doc__)
     parser.add_argument("--checkpoint", required=True)
     parser.add_argument("--data", required=True)
@@ -108,19 +91,14 @@ def main() -> None:
                           parity_frames_per_source=1)  # fmt: skip
     fp32 = Labeler(repository / "000001")
     ids = read_image_set(data / "ImageSets" / f"{args.split}.txt")
-    wanted = args.calibration_frames + args.agreement_frames
-    spread = ids[:: max(len(ids) // wanted, 1)][:wanted]
+    spread = spread_frames(ids, args.calibration_frames + args.agreement_frames)
     dataset = KittiDataset(data)
     calibration = [
         dataset.load_frame(i, with_labels=False) for i in spread[: args.calibration_frames]
     ]
     held_out = [dataset.load_frame(i, with_labels=False) for i in spread[args.calibration_frames :]]
     reference = [fp32.label(f.image, f.points, f.calib) for f in held_out]
-    feeds = {
-        "2d": [{"image": np.ascontiguousarray(f.image)} for f in calibration],
-        "3d": [dict(zip(INPUTS_3D, pillarize(f.points, fp32.grid).arrays, strict=True))
-               for f in calibration],
-    }  # fmt: skip
+    feeds = graph_feeds(calibration, fp32.grid)
     specs = {"2d": fp32.manifest.model_2d, "3d": fp32.manifest.model_3d}
     rows = []
     for name, (op_types, excluded, graphs) in CHOICES.items():
@@ -129,17 +107,10 @@ def main() -> None:
         shutil.copytree(fp32.path, target)
         for graph in graphs:
             source = fp32.path / specs[graph].file
-            quantize_static(
-                str(source), str(target / specs[graph].file), _Feeds(feeds[graph]),
-                quant_format=QuantFormat.QDQ, per_channel=True,
-                activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                op_types_to_quantize=op_types, nodes_to_exclude=excluded(source),
-            )  # fmt: skip
+            quantize_graph(source, target / specs[graph].file, feeds[graph], excluded(source),
+                           op_types)  # fmt: skip
         candidate = Labeler(target, check_files=False)
-        matched = reproduced = 0
-        for frame, labels in zip(held_out, reference, strict=True):
-            found = label_agreement(labels, candidate.label(frame.image, frame.points, frame.calib))
-            matched, reproduced = matched + found[0], reproduced + found[1]
+        matched, reproduced = agreement_on(reference, candidate, held_out)
         rows.append((name, reproduced, matched))
         print(f"{name}: {reproduced} of {matched} ({reproduced / max(matched, 1):.1%})", flush=True)
     print(f"\n{args.checkpoint} on {data} ({args.split}): calibrated on {len(calibration)} frames, "

@@ -133,6 +133,11 @@ def prepare_output(out: Path, overwrite: bool, written: Sequence[str]) -> None:
             path.unlink()
 
 
+def class_names(text: str) -> list[str]:
+    """A --classes value ("Car, Pedestrian,Cyclist") -> its names, blanks dropped."""
+    return [name.strip() for name in text.split(",") if name.strip()]
+
+
 def add_store_options(parser: argparse.ArgumentParser, required: bool, what: str) -> None:
     """--store (a directory, or a postgresql:// URL: the index every replica shares) and
     --store-root (the shared store's files)."""

@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from commands.common import class_names
+
 
 def evaluate(args: argparse.Namespace) -> int:
     from detmatch.data.kitti import read_image_set
@@ -17,8 +19,7 @@ def evaluate(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"no label files (ID.txt) in {args.gt_dir}")
     else:
         ids = read_image_set(args.ids_file)
-    classes = [c.strip() for c in args.classes.split(",") if c.strip()]
-    results = evaluate_dirs(Path(args.gt_dir), Path(args.pred_dir), ids, classes)
+    results = evaluate_dirs(Path(args.gt_dir), Path(args.pred_dir), ids, class_names(args.classes))
     print(format_table(results))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

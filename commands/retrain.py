@@ -9,10 +9,8 @@ import time
 from pathlib import Path
 
 from commands.common import add_device_option, add_store_options, store_location
+from detmatch.constants import RETRAIN_LOCK_HELD_EXIT
 from retrain.demo_results import DEFAULT_OUT, DEFAULT_SIZE, SIZES, describe_sizes
-
-# `detmatch retrain`'s exit status when another retraining holds the repository's lock.
-LOCK_HELD_EXIT = 3
 
 
 def retrain(args: argparse.Namespace) -> int:
@@ -52,7 +50,7 @@ def retrain(args: argparse.Namespace) -> int:
         run_scheduled(request, context, every, args.times, report=report)
     except LockHeld as error:
         print(f"detmatch retrain: {error}", file=sys.stderr)
-        return LOCK_HELD_EXIT
+        return RETRAIN_LOCK_HELD_EXIT
     except ExportCheckError as error:
         print(f"detmatch retrain: the candidate failed its export checks, nothing was "
               f"published: {error}", file=sys.stderr)  # fmt: skip

@@ -6,7 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from commands.common import add_overwrite_option, add_store_options, prepare_output, store_location
+from commands.common import (
+    add_overwrite_option,
+    add_store_options,
+    class_names,
+    prepare_output,
+    store_location,
+)
 from detmatch.constants import (
     LABEL_STUDIO_LOCAL_FILES,
     REVIEW_CLASSES,
@@ -40,8 +46,8 @@ def review_export(args: argparse.Namespace) -> int:
 def review_import(args: argparse.Namespace) -> int:
     from serving.reviews import import_review
 
-    classes = [c.strip() for c in args.classes.split(",") if c.strip()]
-    summary = import_review(store_location(args), Path(args.source), args.format, classes)
+    summary = import_review(store_location(args), Path(args.source), args.format,
+                            class_names(args.classes))  # fmt: skip
     print(
         f"imported human labels of {len(summary.created) + len(summary.replaced)} frames from "
         f"{args.source}: {len(summary.created)} created, {len(summary.unchanged)} unchanged, "
@@ -70,13 +76,18 @@ def review_backend(args: argparse.Namespace) -> int:
                              lock_retry_s=args.lock_retry_s)  # fmt: skip
     elif args.train_after is not None:
         raise ValueError("--train-after needs --data and --store (what a round trains on)")
-    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    backend = Backend(repository, store, queue, args.train_after, args.label_studio_url, classes)
+    backend = Backend(repository, store, queue, args.train_after, args.label_studio_url,
+                      tuple(class_names(args.classes)))  # fmt: skip
     try:
         serve(backend, args.host, args.port)
     except KeyboardInterrupt:
         return 130
     return 0
+
+
+def _add_classes_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),
+                        help="the class names a reviewer may use")  # fmt: skip
 
 
 def add_parsers(commands: argparse._SubParsersAction) -> None:
@@ -123,8 +134,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
                         "datumaro-3d), or "
                         "Label Studio's JSON export file")  # fmt: skip
     parser.add_argument("--format", required=True, choices=REVIEW_FORMATS)
-    parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),
-                        help="the class names a reviewer may use")  # fmt: skip
+    _add_classes_option(parser)
     parser.set_defaults(handler=review_import)
 
     parser = actions.add_parser(
@@ -155,8 +165,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
                         "tries")  # fmt: skip
     parser.add_argument("--label-studio-url", help="where task images on the Label Studio "
                         "server are fetched from, if /setup sent no hostname")  # fmt: skip
-    parser.add_argument("--classes", default=",".join(REVIEW_CLASSES),
-                        help="the class names a reviewer may use")  # fmt: skip
+    _add_classes_option(parser)
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on")
     parser.add_argument("--port", type=int, default=9090, help="port (0: a free one)")
     parser.set_defaults(handler=review_backend)

@@ -26,10 +26,13 @@ IMAGE_STD = (0.229, 0.224, 0.225)
 # `detmatch review export` (serving.review): its formats and frame selections, and the path
 # Label Studio serves files under LOCAL_FILES_DOCUMENT_ROOT at (here so that building the
 # command line imports nothing of the service).
-REVIEW_FORMATS = ("cvat-3d", "kitti-raw", "datumaro-3d", "label-studio")
 REVIEW_3D_FORMATS = ("cvat-3d", "kitti-raw", "datumaro-3d")  # CVAT's 3D formats (datumaro)
+REVIEW_FORMATS = (*REVIEW_3D_FORMATS, "label-studio")
 REVIEW_SELECTIONS = ("all", "random", "least-confident", "disagreement")
 LABEL_STUDIO_LOCAL_FILES = "/data/local-files/?d="
+# `detmatch retrain`'s exit status when another retraining holds the repository's lock (what
+# the review backend's queue waits on).
+RETRAIN_LOCK_HELD_EXIT = 3
 # The labels a reviewer can choose from in an exported review set (with any other class the
 # exported labels hold), and the ones an import accepts by default.
 REVIEW_CLASSES = ("Car", "Pedestrian", "Cyclist", "Van")

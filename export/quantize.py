@@ -65,37 +65,78 @@ class _Feeds:
         return next(self._feeds, None)
 
 
-def consumers_of(graph) -> dict[str, list]:
-    """An ONNX graph's tensor name -> the nodes that read it."""
-    consumers: dict[str, list] = {}
+def quantizable_layers(model_path: Path) -> dict[str, set[str]]:
+    """An ONNX file's quantizable nodes (QUANTIZED_OPS), in graph order -> the quantizable
+    nodes reachable from each."""
+    import onnx
+
+    graph = onnx.load(str(model_path), load_external_data=False).graph
+    consumers: dict[str, list] = {}  # tensor name -> the nodes that read it
     for node in graph.node:
         for name in node.input:
             consumers.setdefault(name, []).append(node)
-    return consumers
+    reached: dict[str, set[str]] = {}
+    for layer in (n for n in graph.node if n.op_type in QUANTIZED_OPS):
+        seen, found, stack = set(), set(), list(layer.output)
+        while stack:
+            for consumer in consumers.get(stack.pop(), []):
+                if id(consumer) not in seen:
+                    seen.add(id(consumer))
+                    if consumer.op_type in QUANTIZED_OPS:
+                        found.add(consumer.name)
+                    stack.extend(consumer.output)
+        reached[layer.name] = found
+    return reached
 
 
 def float_layers(model_path: Path) -> list[str]:
     """The quantizable nodes that stay float: the first one (in graph order) and every one
     from which no other quantizable node is reachable (the heads' output layers)."""
-    import onnx
+    reached = quantizable_layers(model_path)
+    first = list(reached)[:1]
+    return first + [name for name, found in reached.items() if not found and name not in first]
 
-    graph = onnx.load(str(model_path), load_external_data=False).graph
-    consumers = consumers_of(graph)
-    layers = [n for n in graph.node if n.op_type in QUANTIZED_OPS]
 
-    def feeds_another(node) -> bool:
-        seen, stack = set(), list(node.output)
-        while stack:
-            for consumer in consumers.get(stack.pop(), []):
-                if consumer.op_type in QUANTIZED_OPS:
-                    return True
-                if id(consumer) not in seen:
-                    seen.add(id(consumer))
-                    stack.extend(consumer.output)
-        return False
+def spread_frames(ids: list[str], count: int) -> list[str]:
+    """count ids spread evenly over ids (the first count if there are fewer)."""
+    return ids[:: max(len(ids) // count, 1)][:count]
 
-    last = [n.name for n in layers if not feeds_another(n)]
-    return ([layers[0].name] if layers else []) + [n for n in last if n != layers[0].name]
+
+def graph_feeds(frames, grid) -> dict[str, list[dict[str, np.ndarray]]]:
+    """Frames -> each graph's input feeds ("2d", "3d"), as the labeler feeds the graphs."""
+    return {
+        "2d": [{"image": np.ascontiguousarray(f.image)} for f in frames],
+        "3d": [dict(zip(INPUTS_3D, pillarize(f.points, grid).arrays, strict=True))
+               for f in frames],
+    }  # fmt: skip
+
+
+def quantize_graph(
+    source: Path,
+    target: Path,
+    feeds: list[dict[str, np.ndarray]],
+    nodes_to_exclude: list[str],
+    op_types: list[str] | None = QUANTIZED_OPS,
+) -> None:
+    """One graph through onnxruntime's static quantization as SCHEME says (op_types None:
+    every operator it quantizes), calibrated on feeds."""
+    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
+
+    quantize_static(
+        str(source), str(target), _Feeds(feeds), quant_format=QuantFormat.QDQ,
+        per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+        op_types_to_quantize=op_types, nodes_to_exclude=nodes_to_exclude,
+    )  # fmt: skip
+
+
+def agreement_on(references, candidate: Labeler, frames) -> tuple[int, int]:
+    """label_agreement summed over frames: references[i], the reference version's labels of
+    frames[i], against the candidate's labels of it."""
+    matched = reproduced = 0
+    for frame, reference in zip(frames, references, strict=True):
+        found = label_agreement(reference, candidate.label(frame.image, frame.points, frame.calib))
+        matched, reproduced = matched + found[0], reproduced + found[1]
+    return matched, reproduced
 
 
 def label_agreement(reference, candidate) -> tuple[int, int]:
@@ -134,8 +175,6 @@ def quantize_version(
 ) -> QuantizeResult:
     """Quantize, check and publish (see the module docstring). frames: the ids of
     calibration_data to draw the calibration and agreement frames from (default: all)."""
-    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
-
     log = log or (lambda message: None)
     if not 0.0 <= min_agreement <= 1.0:
         raise ValueError(f"min_agreement must be in [0, 1], got {min_agreement}")
@@ -150,37 +189,23 @@ def quantize_version(
             f"{calibration_data} has {len(ids)} frames; calibration and parity need "
             f"{calibration_frames} + {parity_frames}"
         )
-    step = len(ids) // (calibration_frames + parity_frames)
-    spread = ids[:: max(step, 1)][: calibration_frames + parity_frames]
+    spread = spread_frames(ids, calibration_frames + parity_frames)
     calibration, held_out = spread[:calibration_frames], spread[calibration_frames:]
     frames = [dataset.load_frame(i, with_labels=False) for i in calibration]
-    feeds_2d = [{"image": np.ascontiguousarray(f.image)} for f in frames]
-    feeds_3d = [dict(zip(INPUTS_3D, pillarize(f.points, source.grid).arrays, strict=True))
-                for f in frames]  # fmt: skip
+    feeds = graph_feeds(frames, source.grid)
     started = time.time()
     with staging_directory(repository) as staging:
         for item in source.path.iterdir():
             if item.name != "PROMOTED" and item.is_file():
                 shutil.copyfile(item, staging / item.name)
-        for spec, feeds in ((source.manifest.model_2d, feeds_2d),
-                            (source.manifest.model_3d, feeds_3d)):  # fmt: skip
-            quantize_static(
-                str(source.path / spec.file), str(staging / spec.file), _Feeds(feeds),
-                quant_format=QuantFormat.QDQ, per_channel=True,
-                activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                op_types_to_quantize=QUANTIZED_OPS,
-                nodes_to_exclude=float_layers(source.path / spec.file),
-            )  # fmt: skip
+        for graph, spec in (("2d", source.manifest.model_2d), ("3d", source.manifest.model_3d)):
+            graph_path = source.path / spec.file
+            quantize_graph(graph_path, staging / spec.file, feeds[graph], float_layers(graph_path))
         log(f"quantized both graphs on {len(frames)} calibration frames")
         quantized = Labeler(staging, check_files=False)
-        matched = reproduced = 0
-        for frame_id in held_out:
-            frame = dataset.load_frame(frame_id, with_labels=False)
-            found = label_agreement(
-                source.label(frame.image, frame.points, frame.calib),
-                quantized.label(frame.image, frame.points, frame.calib),
-            )
-            matched, reproduced = matched + found[0], reproduced + found[1]
+        parity = [dataset.load_frame(i, with_labels=False) for i in held_out]
+        references = [source.label(f.image, f.points, f.calib) for f in parity]
+        matched, reproduced = agreement_on(references, quantized, parity)
         agreement = reproduced / matched if matched else 1.0
         log(f"label parity: {reproduced} of {matched} matched labels reproduced "
             f"({agreement:.1%}; at least {min_agreement:.0%} needed)")  # fmt: skip

@@ -44,17 +44,14 @@ from detmatch.constants import (
 from detmatch.data.kitti import read_calib
 from detmatch.files import atomic_write_bytes
 from detmatch.structures import Calibration
-from serving.store_export import Store, list_frames, read_frame
+from serving.store_export import NAMESPACE_SEPARATOR, Store, list_frames, read_frame
 from serving.store_layout import FRAME_FILES, StoredFrame
 
-FORMATS, SELECTIONS = REVIEW_FORMATS, REVIEW_SELECTIONS
 DATUMARO_FORMAT = {"cvat-3d": "sly_pointcloud", "kitti-raw": "kitti_raw",
                    "datumaro-3d": "datumaro"}  # fmt: skip
 ROUNDING_DIGITS = 6
 MANIFEST = "review.json"
 CVAT_LABELS = "cvat_labels.json"  # the CVAT task's label specification
-
-LOCAL_FILES_PREFIX = LABEL_STUDIO_LOCAL_FILES
 
 
 @dataclass(frozen=True)
@@ -72,10 +69,16 @@ class ReviewExport:
     out: Path
 
 
+def check_format(format: str) -> None:
+    """ValueError naming the formats unless format is one of them (export and import)."""
+    if format not in REVIEW_FORMATS:
+        raise ValueError(f"--format {format!r}: choose from {', '.join(REVIEW_FORMATS)}")
+
+
 def item_id(record: StoredFrame) -> str:
     """A frame's id in a review set: NAMESPACE__ID, unique across namespaces, and what an
     import maps back to the stored key."""
-    return f"{record.namespace}__{record.frame_id}"
+    return f"{record.namespace}{NAMESPACE_SEPARATOR}{record.frame_id}"
 
 
 def select_frames(
@@ -88,8 +91,8 @@ def select_frames(
 ) -> list[Selected]:
     """The frames to review, in the order a reviewer should see them (see the module
     docstring)."""
-    if select not in SELECTIONS:
-        raise ValueError(f"--select {select!r}: choose from {', '.join(SELECTIONS)}")
+    if select not in REVIEW_SELECTIONS:
+        raise ValueError(f"--select {select!r}: choose from {', '.join(REVIEW_SELECTIONS)}")
     if select != "all" and (budget is None or budget < 1):
         raise ValueError(f"--select {select} needs --budget N (N >= 1)")
     records = [
@@ -161,12 +164,11 @@ def export_review(
     out: str | Path,
     format: str,
     selected: list[Selected],
-    image_url_prefix: str = LOCAL_FILES_PREFIX,
+    image_url_prefix: str = LABEL_STUDIO_LOCAL_FILES,
 ) -> ReviewExport:
     """Write the selected frames for review in `format` under out (see the module docstring),
     with out/review.json listing each frame's id, key, model version and reason."""
-    if format not in FORMATS:
-        raise ValueError(f"--format {format!r}: choose from {', '.join(FORMATS)}")
+    check_format(format)
     out = Path(out)
     frames = [_frame(store, s) for s in selected]
     if format == "label-studio":
@@ -201,12 +203,16 @@ def _frame(store: Store, selected: Selected) -> _Frame:
         return next(v for k, v in contents.items()
                     if k.endswith(f"{directory}/{record.frame_id}{suffix}"))  # fmt: skip
 
-    with tempfile.NamedTemporaryFile("wb", suffix=".txt") as handle:
-        handle.write(content("calib"))
-        handle.flush()
-        calib = read_calib(handle.name)
     points = np.frombuffer(content("points"), dtype="<f4").reshape(-1, 4)
-    return _Frame(item_id(record), selected, content("image"), points, calib)
+    return _Frame(item_id(record), selected, content("image"), points, calib_of(content("calib")))
+
+
+def calib_of(data: bytes) -> Calibration:
+    """A stored KITTI calib file's bytes -> its Calibration (KITTI's own reader)."""
+    with tempfile.NamedTemporaryFile("wb", suffix=".txt") as handle:
+        handle.write(data)
+        handle.flush()
+        return read_calib(handle.name)
 
 
 def camera_matrices(calib: Calibration) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,6 @@ import base64
 import binascii
 import io
 import logging
-import os
 import signal
 import subprocess
 import sys
@@ -51,7 +50,7 @@ import numpy as np
 from aiohttp import ClientSession, ClientTimeout, web
 from PIL import Image, UnidentifiedImageError
 
-from detmatch.constants import REVIEW_CLASSES
+from detmatch.constants import RETRAIN_LOCK_HELD_EXIT, REVIEW_CLASSES
 from serving.repository import served_version
 from serving.review import rectangle_result
 from serving.reviews import ReviewImportError, label_studio_items, store_reviews
@@ -59,7 +58,6 @@ from serving.reviews import ReviewImportError, label_studio_items, store_reviews
 log = logging.getLogger("detmatch.review.backend")
 ANNOTATION_EVENTS = ("ANNOTATION_CREATED", "ANNOTATION_UPDATED")
 TRAINING_EVENT = "START_TRAINING"
-LOCK_HELD_EXIT = 3  # `detmatch retrain`'s exit status when another retraining holds the lock
 MAX_REQUEST_BYTES = 64 * 1024 * 1024
 MAX_IMAGE_BYTES = 64 * 1024 * 1024
 
@@ -98,16 +96,27 @@ def labeling_interface(config: str) -> LabelingInterface:
 
 @dataclass
 class Round:
-    reason: str
-    requested: float
+    """One retraining round: why it was asked for (every request it stands for), when it
+    started and finished, how `detmatch retrain` exited and what it printed."""
+
+    reasons: list[str]
     started: float | None = None
     finished: float | None = None
     exit_code: int | None = None
     output: str = ""
 
+    def add(self, reasons: list[str]) -> None:
+        """Stand for these requests too."""
+        self.reasons += [r for r in reasons if r not in self.reasons]
+
+    @property
+    def running(self) -> bool:
+        return self.started is not None and self.finished is None
+
     def summary(self) -> dict[str, Any]:
-        return {"reason": self.reason, "started": self.started, "finished": self.finished,
-                "exit_code": self.exit_code, "output": self.output[-2000:]}  # fmt: skip
+        return {"reason": "; ".join(self.reasons), "started": self.started,
+                "finished": self.finished, "exit_code": self.exit_code,
+                "output": self.output[-2000:]}  # fmt: skip
 
 
 @dataclass
@@ -130,11 +139,10 @@ class RetrainQueue:
         queued' (a round after the running one is already waiting)."""
         with self._condition:
             if self._pending is not None:
-                if reason not in self._pending.reason.split("; "):
-                    self._pending.reason += f"; {reason}"
+                self._pending.add([reason])
                 return "already queued"
-            running = any(r.started is not None and r.finished is None for r in self.rounds)
-            self._pending = Round(reason, time.time())
+            running = any(r.running for r in self.rounds)
+            self._pending = Round([reason])
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="retrain", daemon=True)
                 self._thread.start()
@@ -143,8 +151,8 @@ class RetrainQueue:
 
     def state(self) -> dict[str, Any]:
         with self._condition:
-            running = [r for r in self.rounds if r.started is not None and r.finished is None]
-            return {"running": bool(running), "queued": self._pending is not None,
+            return {"running": any(r.running for r in self.rounds),
+                    "queued": self._pending is not None,
                     "waiting": self.waiting,
                     "rounds": [r.summary() for r in self.rounds]}  # fmt: skip
 
@@ -171,19 +179,18 @@ class RetrainQueue:
                 current.started = time.time()
                 self.rounds.append(current)
                 self._process = subprocess.Popen(
-                    self.command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                    env=_child_env())  # fmt: skip
+                    self.command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+                )
             output, _ = self._process.communicate()
             with self._condition:
                 exit_code, self._process = self._process.returncode, None
-                if exit_code == LOCK_HELD_EXIT and not self._closed:
-                    # Another scheduler holds the repository: wait and try again.
+                if exit_code == RETRAIN_LOCK_HELD_EXIT and not self._closed:
+                    # Another scheduler holds the repository: wait and try again, one round
+                    # for this request and any that came meanwhile.
                     self.rounds.remove(current)
                     current.started = None
-                    if self._pending is not None:  # one round for both requests
-                        reasons = [current.reason] + [r for r in self._pending.reason.split("; ")
-                                                      if r != current.reason]  # fmt: skip
-                        current.reason = "; ".join(reasons)
+                    if self._pending is not None:
+                        current.add(self._pending.reasons)
                     self._pending = current
                     self.waiting = (output.strip().splitlines() or ["lock held"])[-1]
                     self._condition.wait(self.lock_retry_s)
@@ -191,14 +198,6 @@ class RetrainQueue:
                 current.exit_code, current.output = exit_code, output
                 current.finished = time.time()
                 self.waiting = None
-
-
-def _child_env() -> dict[str, str]:
-    """The environment of a `detmatch retrain` child: this one, with the product's packages
-    importable whatever the working directory."""
-    root = str(Path(__file__).resolve().parents[1])
-    path = os.environ.get("PYTHONPATH")
-    return {**os.environ, "PYTHONPATH": root if not path else f"{root}{os.pathsep}{path}"}
 
 
 def camera_version(version: str) -> str:
@@ -247,23 +246,24 @@ class Backend:
 
     # --- the model -------------------------------------------------------------------------
 
-    def labeler(self):
+    def _served_labeler(self):
+        """The served version's labeler, loaded again when a new version is promoted (call
+        with _model_lock held)."""
         from serving.labeler import Labeler
 
         version = served_version(self.repository)
         if version is None:
             raise BadRequest(f"model repository {self.repository} has no promoted version")
-        with self._model_lock:
-            if self._labeler is None or self._labeler.version != version:
-                self._labeler = Labeler.from_repository(self.repository, version)
-            return self._labeler
+        if self._labeler is None or self._labeler.version != version:
+            self._labeler = Labeler.from_repository(self.repository, version)
+        return self._labeler
 
     def model_version(self) -> str:
         return camera_version(served_version(self.repository) or "none")
 
     def predict_image(self, image: np.ndarray, interface: LabelingInterface) -> dict[str, Any]:
-        labeler = self.labeler()
         with self._model_lock:
+            labeler = self._served_labeler()
             detections = labeler.detect_2d(image)
         height, width = image.shape[:2]
         results, scores = [], []
@@ -345,6 +345,11 @@ async def _fetch_image(
         raise BadRequest(f"image {url[:80]}: not an image ({error})") from None
 
 
+def _project_id(payload: dict[str, Any]) -> str:
+    """Label Studio's project of a call ("ID.TIMESTAMP" -> "ID")."""
+    return str(payload.get("project", "")).split(".")[0]
+
+
 def make_app(backend: Backend) -> web.Application:
     routes = web.RouteTableDef()
 
@@ -369,8 +374,7 @@ def make_app(backend: Backend) -> web.Application:
     async def setup(request: web.Request) -> web.Response:
         payload = await body(request)
         interface = labeling_interface(str(payload.get("schema") or ""))
-        project = str(payload.get("project", "")).split(".")[0]
-        backend.projects[project] = {"interface": interface,
+        backend.projects[_project_id(payload)] = {"interface": interface,
                                      "hostname": payload.get("hostname"),
                                      "access_token": payload.get("access_token")}  # fmt: skip
         return web.json_response({"model_version": backend.model_version()})
@@ -381,7 +385,7 @@ def make_app(backend: Backend) -> web.Application:
         tasks = payload.get("tasks")
         if not isinstance(tasks, list):
             raise BadRequest("predict needs a list of tasks")
-        project = backend.projects.get(str(payload.get("project", "")).split(".")[0], {})
+        project = backend.projects.get(_project_id(payload), {})
         config = payload.get("label_config")
         interface = labeling_interface(config) if config else project.get("interface")
         if interface is None:

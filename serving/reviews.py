@@ -33,17 +33,14 @@ from typing import Any
 
 import numpy as np
 
-from detmatch.constants import REVIEW_3D_FORMATS, REVIEW_CLASSES, REVIEW_FORMATS
-from detmatch.data.kitti import read_calib
+from detmatch.constants import REVIEW_3D_FORMATS, REVIEW_CLASSES
 from detmatch.files import atomic_write_bytes, fsync_path
-from serving.review import DATUMARO_FORMAT, camera_matrices
-from serving.store_export import Store, list_frames, read_frame
+from serving.review import DATUMARO_FORMAT, calib_of, camera_matrices, check_format
+from serving.store_export import NAMESPACE_SEPARATOR, Store, list_frames, read_frame
 from serving.store_index import store_files_root
 
 REVIEWS_DIR = "reviews"
 JOURNAL_PREFIX = ".import-"
-ID_SEPARATOR = "__"
-IMPORT_FORMATS = REVIEW_FORMATS
 # A related image's matrices and the stored calibration's may differ by the export's rounding.
 CALIBRATION_TOLERANCE = 1e-5
 
@@ -107,8 +104,7 @@ def import_review(
 ) -> ImportSummary:
     """Read a reviewed export, check all of it, and store its human labels (see the module
     docstring)."""
-    if format not in IMPORT_FORMATS:
-        raise ValueError(f"--format {format!r}: choose from {', '.join(IMPORT_FORMATS)}")
+    check_format(format)
     source = Path(source)
     if not source.exists():
         raise FileNotFoundError(f"--from {source}: no such file or directory")
@@ -151,7 +147,7 @@ def store_reviews(
     seen: dict[tuple, int] = {}
     for review in reviews:
         seen[review.key] = seen.get(review.key, 0) + 1
-    problems += [f"{ns}{ID_SEPARATOR}{fid}: appears {n} times in the export"
+    problems += [f"{ns}{NAMESPACE_SEPARATOR}{fid}: appears {n} times in the export"
                  for (ns, fid), n in seen.items() if n > 1]  # fmt: skip
     if not reviews and not problems:
         problems.append(f"{source}: the export holds no reviewed frame")
@@ -166,7 +162,7 @@ def _key(item_id: str, problems: list[str]) -> tuple[str, str] | None:
     from detmatch.data.kitti import validate_frame_id
     from serving.store import validate_namespace
 
-    namespace, separator, frame_id = str(item_id).partition(ID_SEPARATOR)
+    namespace, separator, frame_id = str(item_id).partition(NAMESPACE_SEPARATOR)
     try:
         if not separator:
             raise ValueError("expected NAMESPACE__FRAME_ID, as `detmatch review export` names")
@@ -193,13 +189,8 @@ def _check_label(item_id: str, label: dict, known: set[str], problems: list[str]
 
 def _check_camera(store: Store, record, item_id: str, camera: dict, problems: list[str]) -> None:
     """The related image's matrices against the stored frame's calibration."""
-    import tempfile
-
     _, contents = read_frame(store, record, kinds=("calib",))
-    with tempfile.NamedTemporaryFile("wb", suffix=".txt") as handle:
-        handle.write(next(iter(contents.values())))
-        handle.flush()
-        intrinsic, extrinsic = camera_matrices(read_calib(handle.name))
+    intrinsic, extrinsic = camera_matrices(calib_of(next(iter(contents.values()))))
     for name, want in (("intrinsicMatrix", intrinsic), ("extrinsicMatrix", extrinsic)):
         got = np.asarray(camera.get(name, []), dtype=np.float64)
         if got.size != want.size or not np.allclose(got.reshape(want.shape), want,
@@ -336,7 +327,7 @@ def _write(root: Path, reviews: list[HumanLabels]) -> ImportSummary:
         _finish_journals(root)
         for review in reviews:
             path = review_path(root, review.namespace, review.frame_id)
-            name = f"{review.namespace}{ID_SEPARATOR}{review.frame_id}"
+            name = f"{review.namespace}{NAMESPACE_SEPARATOR}{review.frame_id}"
             if path.is_file():
                 held = json.loads(path.read_text())
                 if {k: held.get(k) for k in review.content()} == review.content():

@@ -28,8 +28,11 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO
+from tests.retrain.conftest import SPLITS
 
 USER, PASSWORD = "reviewer@example.com", "review-pass-1234"
+# The tiny round of the retraining tests: its splits, 2 steps, any candidate promoted.
+ROUND_OVERRIDES = (*SPLITS, "--set", "retrain.steps=2", "--set", "retrain.max_map_drop=100")
 TOKEN = "0123456789abcdef0123456789abcdef01234567"
 
 
@@ -66,17 +69,12 @@ class LabelStudio:
         self.url = url
 
     def call(self, method: str, path: str, body=None, timeout: float = 120.0):
-        data = None if body is None else json.dumps(body).encode()
-        request = urllib.request.Request(
-            self.url + path, data=data, method=method,
-            headers={"Authorization": f"Token {TOKEN}", "Content-Type": "application/json"},
-        )  # fmt: skip
-        try:
-            with urllib.request.urlopen(request, timeout=timeout) as response:
-                text = response.read().decode()
-        except urllib.error.HTTPError as error:
-            raise AssertionError(f"{method} {path}: HTTP {error.code}: "
-                                 f"{error.read().decode()[:2000]}") from None  # fmt: skip
+        """The JSON answer (None if empty); AssertionError with the answer on an error status."""
+        status, data = http_call(method, self.url + path, body, timeout,
+                                 {"Authorization": f"Token {TOKEN}"})  # fmt: skip
+        text = data.decode()
+        if status >= 400:
+            raise AssertionError(f"{method} {path}: HTTP {status}: {text[:2000]}")
         return json.loads(text) if text.strip() else None
 
 
@@ -163,16 +161,26 @@ def backend_process(*args: str) -> Iterator[tuple[str, list[str]]]:
         stop(process, 60)
 
 
-def http_json(method: str, url: str, body=None, timeout: float = 120.0) -> tuple[int, dict]:
-    """(status, JSON body) of a call to the backend, error statuses included."""
+def http_call(
+    method: str, url: str, body=None, timeout: float = 120.0, headers: dict | None = None
+) -> tuple[int, bytes]:
+    """(status, body bytes) of an HTTP call, error statuses included; body: JSON-able, or bytes
+    sent as they are."""
     data = body if body is None or isinstance(body, bytes) else json.dumps(body).encode()
     request = urllib.request.Request(url, data=data, method=method,
-                                     headers={"Content-Type": "application/json"})  # fmt: skip
+                                     headers={"Content-Type": "application/json",
+                                              **(headers or {})})  # fmt: skip
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
-            return response.status, json.loads(response.read() or b"{}")
+            return response.status, response.read()
     except urllib.error.HTTPError as error:
-        return error.code, json.loads(error.read() or b"{}")
+        return error.code, error.read()
+
+
+def http_json(method: str, url: str, body=None, timeout: float = 120.0) -> tuple[int, dict]:
+    """(status, JSON body) of a call to the backend, error statuses included."""
+    status, data = http_call(method, url, body, timeout)
+    return status, json.loads(data or b"{}")
 
 
 def wait_for_rounds(url: str, count: int, timeout_s: float = 600.0) -> list[dict]:

@@ -20,8 +20,8 @@ from commands.main import main  # noqa: E402
 from serving.repository import list_versions  # noqa: E402
 from serving.review import export_review, select_frames  # noqa: E402
 from serving.reviews import read_human_labels  # noqa: E402
-from tests.retrain.conftest import SPLITS  # noqa: E402
 from tests.review.label_studio import (  # noqa: E402
+    ROUND_OVERRIDES,
     backend_process,
     file_server,
     label_studio_server,
@@ -106,7 +106,7 @@ def test_a_review_round_trip_and_the_backend_in_a_real_label_studio(
             str(store),
             "--data",
             str(round_data),
-            *_round_overrides(),
+            *ROUND_OVERRIDES,
         ) as (url, printed):
             backend = label_studio.call("POST", "/api/ml", {"url": url, "project": project["id"],
                                                             "title": "detmatch"})  # fmt: skip
@@ -129,11 +129,3 @@ def test_a_review_round_trip_and_the_backend_in_a_real_label_studio(
             assert finished["reason"] == "START_TRAINING"
             assert "version 000002 promoted" in finished["output"]
     assert list_versions(repository) == ["000001", "000002"]
-
-
-def _round_overrides() -> list[str]:
-    """The tiny round of the retraining tests: its splits, 2 steps, any candidate passes."""
-    sets = [value for flag, value in zip(SPLITS[::2], SPLITS[1::2], strict=True)
-            if flag == "--set"]  # fmt: skip
-    return [arg for value in [*sets, "retrain.steps=2", "retrain.max_map_drop=100"]
-            for arg in ("--set", value)]  # fmt: skip

@@ -23,8 +23,12 @@ from serving.repository import list_versions  # noqa: E402
 from serving.review import label_studio_config  # noqa: E402
 from serving.reviews import read_human_labels  # noqa: E402
 from tests.conftest import KITTI_SAMPLE  # noqa: E402
-from tests.review.label_studio import backend_process, http_json, wait_for_rounds  # noqa: E402
-from tests.review.test_label_studio_live import _round_overrides  # noqa: E402
+from tests.review.label_studio import (  # noqa: E402
+    ROUND_OVERRIDES,
+    backend_process,
+    http_json,
+    wait_for_rounds,
+)
 
 CONFIG = label_studio_config(["Car", "Pedestrian", "Cyclist"])
 
@@ -114,7 +118,7 @@ def test_annotations_become_human_labels_and_training_waits_for_the_lock(
     round_data,
 ):
     args = ["--repository", str(repository), "--store", str(store), "--data", str(round_data),
-            "--train-after", "2", "--lock-retry-s", "0.2", *_round_overrides()]  # fmt: skip
+            "--train-after", "2", "--lock-retry-s", "0.2", *ROUND_OVERRIDES]  # fmt: skip
     with backend_process(*args) as (url, printed):
         # Bad annotations are refused whole, naming the frame; nothing is stored.
         for frame, annotation, message in (
