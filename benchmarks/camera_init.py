@@ -21,6 +21,7 @@ from benchmarks.harness import benchmark_parser, rerun
 from detmatch.checkpoints import list_checkpoints
 from detmatch.config import DEVICES, ExperimentConfig, apply_overrides, load_config
 from detmatch.data.dataset import Batch
+from detmatch.data.synth.world import read_resolution
 from detmatch.training.distributed import DistributedContext, init_distributed
 from detmatch.training.evaluation import evaluate_detectors
 from detmatch.training.trainer import SupervisedTrainer
@@ -64,12 +65,19 @@ def synth_seed(root: Path) -> int:
 
 def check_disjoint(camera_data: Path, benchmark_data: Path) -> None:
     """Refuse a camera set made with the benchmark data's generator seed (it would hold the
-    benchmark's own scenes: frame i depends only on the seed and i)."""
+    benchmark's own scenes: frame i depends only on the seed and i), or rendered at another
+    camera resolution (the stand-in would start from another camera)."""
     if synth_seed(camera_data) == synth_seed(benchmark_data):
         raise SystemExit(
             f"{camera_data} and {benchmark_data} share generator seed "
             f"{synth_seed(camera_data)}: the camera's set must hold none of the benchmark's "
             "scenes (make it with another --seed)"
+        )
+    ours, theirs = read_resolution(camera_data), read_resolution(benchmark_data)
+    if ours != theirs:
+        raise SystemExit(
+            f"{camera_data} is rendered at {ours} resolution and {benchmark_data} at {theirs}: "
+            "make the camera's set with the benchmark's --resolution"
         )
 
 

@@ -56,7 +56,7 @@ from detmatch.config import (
 from detmatch.data.dataset import FrameDataset, Sample, collate
 from detmatch.data.kitti import read_image_set, write_image_set
 from detmatch.data.splits import dev_name, make_split, split_names
-from detmatch.data.synth.world import read_world
+from detmatch.data.synth.world import read_resolution, read_world
 from detmatch.eval.occlusion import LEVELS as OCCLUSION_LEVELS
 from detmatch.eval.occlusion import LevelCurve, object_levels
 from detmatch.eval.pseudo_labels import pooled_precision_recall_f1, pseudo_label_quality
@@ -541,7 +541,7 @@ def main() -> None:
     stage = ssl_config(base, "control", args, out).train  # every method's steps and rates
     context = init_distributed(args.device)
     timings = {}
-    world = read_world(Path(args.data))
+    world, resolution = read_world(Path(args.data)), read_resolution(Path(args.data))
     camera_run = Path(args.camera_run) if args.camera_run else out / "camera"
     if args.camera_data:
         camera_init.check_disjoint(Path(args.camera_data), Path(args.data))
@@ -588,8 +588,9 @@ def main() -> None:
     timings["report"] = time.perf_counter() - started
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
-    lines += [f"World {world or 'not synthetic'} ({args.data}); labeled {labeled}, unlabeled "
-              f"{unlabeled}, dev {dev}; config {args.config}"]  # fmt: skip
+    rendered = f" at {resolution} camera resolution" if resolution else ""
+    lines += [f"World {world or 'not synthetic'}{rendered} ({args.data}); labeled {labeled}, "
+              f"unlabeled {unlabeled}, dev {dev}; config {args.config}"]  # fmt: skip
     if args.camera_data:
         lines += [f"2D detector starts from {base.train.init_2d} (every label of "
                   f"{args.camera_data}: the COCO stand-in)"]  # fmt: skip
@@ -642,6 +643,7 @@ def main() -> None:
     summary = {
         "seed": args.seed,
         "world": world,
+        "resolution": resolution,
         "init_2d": base.train.init_2d,
         "splits": {"labeled": labeled, "unlabeled": unlabeled, "dev": dev},
         "results": results,

@@ -17,7 +17,7 @@ from detmatch.data.synth.camera import render_camera
 from detmatch.data.synth.primitives import Primitives
 from detmatch.data.synth.sensors import make_camera
 from detmatch.data.synth.textures import NoiseTiles
-from detmatch.data.synth.world import WORLDS, get_world, read_world
+from detmatch.data.synth.world import WORLDS, get_world, read_resolution, read_world
 from detmatch.geometry import points_in_boxes
 from tests.conftest import KITTI_SAMPLE
 
@@ -160,3 +160,17 @@ def test_the_camera_stand_in_set_shares_no_seed_or_scene_with_the_benchmark(
     for a in bench:
         for b in camera:
             assert a.road != b.road
+
+
+def test_the_stand_in_set_must_be_rendered_at_the_benchmark_s_resolution(tmp_path: Path) -> None:
+    generate_dataset(tmp_path / "bench", 1, seed=0, world="v2", resolution="full", progress=False)
+    generate_dataset(tmp_path / "half", 1, seed=7, world="v2", progress=False)
+    generate_dataset(tmp_path / "full", 1, seed=7, world="v2", resolution="full", progress=False)
+    assert (read_resolution(tmp_path / "bench"), read_resolution(tmp_path / "half")) == (
+        "full",
+        "half",
+    )
+    assert read_resolution(KITTI_SAMPLE) == ""
+    check_disjoint(tmp_path / "full", tmp_path / "bench")
+    with pytest.raises(SystemExit, match="rendered at half resolution .* at full"):
+        check_disjoint(tmp_path / "half", tmp_path / "bench")
