@@ -20,7 +20,6 @@ batch labeling feeds retraining like the service does; out_dir may then be None.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import time
@@ -28,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from tqdm import tqdm
 
 from detmatch.data.kitti import format_objects
@@ -36,6 +34,7 @@ from detmatch.data.selection import FrameSelection
 from detmatch.files import atomic_write_bytes
 from detmatch.structures import Calibration
 from serving.labeler import FrameLabels, Labeler
+from serving.png import encode_png
 from serving.serialize import labels_to_json, labels_to_objects_2d, labels_to_objects_3d
 from serving.store import DEFAULT_NAMESPACE, LabelStore, StoreOutcome
 
@@ -146,13 +145,4 @@ def labeling_record(
 def image_png(path: Path, pixels: np.ndarray) -> bytes:
     """What the store keeps of a frame's image file: a PNG as it is, any other image (JPEG)
     re-encoded as PNG from its decoded (H, W, 3) uint8 RGB pixels."""
-    return path.read_bytes() if path.suffix.lower() == ".png" else _png(pixels)
-
-
-def _png(pixels: np.ndarray) -> bytes:
-    """(H, W, 3) uint8 RGB as PNG bytes (what the store keeps)."""
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(pixels, dtype=np.uint8), mode="RGB").save(
-        buffer, format="PNG", compress_level=6
-    )
-    return buffer.getvalue()
+    return path.read_bytes() if path.suffix.lower() == ".png" else encode_png(pixels)
