@@ -1,5 +1,5 @@
-"""The store's PNG encoder: lossless for any RGB image (Pillow's and libspng's decoders read
-back exactly the pixels), and it refuses what is not 8-bit RGB."""
+"""The store's PNG encoder: lossless for any RGB image with either deflate (Pillow's and
+libspng's decoders read back exactly the pixels), and it refuses what is not 8-bit RGB."""
 
 from __future__ import annotations
 
@@ -10,8 +10,19 @@ import pyspng
 import pytest
 from PIL import Image
 
+import serving.png
 from serving.png import encode_png
 from tests.conftest import KITTI_SAMPLE
+
+
+@pytest.fixture(autouse=True, params=["isal", "zlib"])
+def deflate(request, monkeypatch):
+    """Every test with ISA-L's deflate and with zlib's, the encoder's fallback."""
+    if request.param == "zlib":
+        monkeypatch.setattr(serving.png, "_isal", None)
+    else:
+        assert serving.png._isal is not None, "isal is in the serve extra"
+    return request.param
 
 
 def _decoded(data: bytes) -> np.ndarray:
