@@ -6,13 +6,15 @@ frames only (issue 42, point 3; `export.quantize.float_layers` is the product's 
 
 The checkpoint is exported once (fp32, version 000001); each choice quantizes both graphs as
 `detmatch-export --quantize int8` does (QDQ, per-channel int8 weights, uint8 activations,
-MinMax), calibrated on the same --calibration-frames frames of --split and compared with fp32
-on --agreement-frames others of it (spread evenly, as the export draws them): the share of
+MinMax: each activation's range the moving average of the frames' ranges), calibrated on the
+same --calibration-frames frames of --split and compared with fp32 on --agreement-frames
+others of it (spread evenly, as the export draws them): the share of
 fp32's matched labels reproduced (same class, 3D IoU >= 0.7 and 2D IoU >= 0.7). Choices:
 every operator onnxruntime quantizes; convolutions and matrix products only (the product's
 operator set, `QUANTIZED_OPS`), all of them, or with each graph's first layer float, its
 heads' output layers float, both (the product's rule, `float_layers`), or the first and every
-head layer float; and only one graph quantized (the other float).
+head layer float; the product's rule with activation ranges from every frame's extremes (the
+calibration before 2026-12-07); and only one graph quantized (the other float).
 """
 
 from __future__ import annotations
@@ -54,20 +56,23 @@ def _first_and_head_layers(path: Path) -> list[str]:
     return _first_layer(path) + [n for n in heads if n not in _first_layer(path)]
 
 
-# name -> (operator types (None: all onnxruntime quantizes), float nodes, graphs quantized)
-Choice = tuple[list[str] | None, Callable[[Path], list[str]], tuple[str, ...]]
+# name -> (operator types (None: all onnxruntime quantizes), float nodes, graphs quantized,
+# activation ranges from the moving average of each frame's range (else every frame's extremes))
+Choice = tuple[list[str] | None, Callable[[Path], list[str]], tuple[str, ...], bool]
 NONE: Callable[[Path], list[str]] = lambda path: []  # noqa: E731
 CHOICES: dict[str, Choice] = {
-    "every operator": (None, NONE, ("2d", "3d")),
-    "convolutions and matrix products": (QUANTIZED_OPS, NONE, ("2d", "3d")),
-    "... first layer float": (QUANTIZED_OPS, _first_layer, ("2d", "3d")),
-    "... heads' output layers float": (QUANTIZED_OPS, _output_layers, ("2d", "3d")),
+    "every operator": (None, NONE, ("2d", "3d"), True),
+    "convolutions and matrix products": (QUANTIZED_OPS, NONE, ("2d", "3d"), True),
+    "... first layer float": (QUANTIZED_OPS, _first_layer, ("2d", "3d"), True),
+    "... heads' output layers float": (QUANTIZED_OPS, _output_layers, ("2d", "3d"), True),
+    "... first and output layers float, ranges from every frame's extremes": (
+        QUANTIZED_OPS, float_layers, ("2d", "3d"), False),
     "... first and output layers float (the product)": (QUANTIZED_OPS, float_layers,
-                                                        ("2d", "3d")),
+                                                        ("2d", "3d"), True),
     "... first and every head layer float": (QUANTIZED_OPS, _first_and_head_layers,
-                                             ("2d", "3d")),
-    "2D graph only (the product's rule)": (QUANTIZED_OPS, float_layers, ("2d",)),
-    "3D graph only (the product's rule)": (QUANTIZED_OPS, float_layers, ("3d",)),
+                                             ("2d", "3d"), True),
+    "2D graph only (the product's rule)": (QUANTIZED_OPS, float_layers, ("2d",), True),
+    "3D graph only (the product's rule)": (QUANTIZED_OPS, float_layers, ("3d",), True),
 }  # fmt: skip
 
 
@@ -101,14 +106,14 @@ def main() -> None:
     feeds = graph_feeds(calibration, fp32.grid)
     specs = {"2d": fp32.manifest.model_2d, "3d": fp32.manifest.model_3d}
     rows = []
-    for name, (op_types, excluded, graphs) in CHOICES.items():
+    for name, (op_types, excluded, graphs, moving_average) in CHOICES.items():
         target = work / "choice"
         shutil.rmtree(target, ignore_errors=True)
         shutil.copytree(fp32.path, target)
         for graph in graphs:
             source = fp32.path / specs[graph].file
             quantize_graph(source, target / specs[graph].file, feeds[graph], excluded(source),
-                           op_types)  # fmt: skip
+                           op_types, moving_average)  # fmt: skip
         candidate = Labeler(target, check_files=False)
         matched, reproduced = agreement_on(reference, candidate, held_out)
         rows.append((name, reproduced, matched))
