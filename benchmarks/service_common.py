@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -128,6 +129,21 @@ def serve(
                 process.kill()
         process.wait(timeout=60)
         process.stdout.close()
+
+
+def int8_repository(work: Path, repository: Path) -> Path:
+    """A copy of repository whose promoted version is an INT8 version of its 000001
+    (`detmatch-export --quantize int8`, calibrated on two KITTI sample frames, parity on the
+    third and not enforced: the graphs' speed is what the service benchmarks need of it)."""
+    from export.quantize import quantize_version
+
+    target = work / f"{repository.name}_int8"
+    if not (target / "000002" / "PROMOTED").is_file():
+        shutil.rmtree(target, ignore_errors=True)
+        shutil.copytree(repository, target)
+        quantize_version(target, "000001", KITTI_SAMPLE, calibration_frames=2, parity_frames=1,
+                         min_agreement=0.0, promote_version=True)  # fmt: skip
+    return target
 
 
 def sample_requests(store: bool = True, prefix: str = "", raw_image: bool = False) -> list:

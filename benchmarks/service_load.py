@@ -2,7 +2,7 @@
 clients, with the label store on and off, measured in one run.
 
     python -m benchmarks.service_load [--clients 1 2 4 8] [--seconds 10] [--workers 2]
-                                      [--config configs/synth_cpu.toml]
+                                      [--config configs/synth_cpu.toml] [--raw-image] [--int8]
 
 Two servers run side by side, one storing every frame (each request a new frame id, so
 every call writes a frame: files, fsyncs, the index) and one with `store: false`; for each
@@ -13,6 +13,8 @@ PNG and 1.8-2.0 MB of points) one call after another. Figures: frames/s, p50/p95
 latency, failed calls (target 0), the server's RSS at the start, its peak and at the end
 (sampled every 0.5 s), the store-on / store-off throughput ratio (target at 4 clients: >=
 0.8), and the store's group commit: frames per committed batch (from the server's log).
+--raw-image: the clients send the frames' pixels uncompressed (raw_image) instead of PNG;
+--int8: the servers serve an INT8 version of the model (`--quantize int8`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from benchmarks.harness import benchmark_parser, rerun
 from benchmarks.service_common import (
     RssSampler,
     cpu_seconds,
+    int8_repository,
     percentiles,
     prepare_repository,
     sample_requests,
@@ -36,8 +39,11 @@ from benchmarks.service_common import (
 )
 
 
-def run_clients(target: str, clients: int, seconds: float, store: bool, tag: str) -> dict:
-    """`clients` threads labeling for `seconds`; each call a new frame id when storing."""
+def run_clients(
+    target: str, clients: int, seconds: float, store: bool, tag: str, raw_image: bool = False
+) -> dict:
+    """`clients` threads labeling for `seconds`; each call a new frame id when storing;
+    raw_image: the pixels sent uncompressed."""
     from serving.client import pb2_grpc
 
     latencies: list[float] = []
@@ -47,7 +53,7 @@ def run_clients(target: str, clients: int, seconds: float, store: bool, tag: str
     deadline = [0.0]
 
     def client(number: int) -> None:
-        requests = sample_requests(store=store)
+        requests = sample_requests(store=store, raw_image=raw_image)
         with grpc.insecure_channel(target, options=[
             ("grpc.max_send_message_length", 64 << 20)]) as channel:  # fmt: skip
             stub = pb2_grpc.AutoLabelerStub(channel)
@@ -103,11 +109,15 @@ def main() -> None:
     )
     parser.add_argument("--workers", type=int, default=4, help="the server's (its default)")
     parser.add_argument("--config", default="configs/synth_cpu.toml")
+    parser.add_argument("--raw-image", action="store_true", help="clients send raw pixels")
+    parser.add_argument("--int8", action="store_true", help="serve an INT8 version")
     parser.add_argument("--work", help="working directory (default: a temporary one)")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
     work = Path(args.work or tempfile.mkdtemp(prefix="service_load_"))
     repository = prepare_repository(work, args.config)
+    if args.int8:
+        repository = int8_repository(work, repository)
     server_args = ("--workers", str(args.workers))
     rows = []
     run = time.strftime("%Y%m%d-%H%M%S")  # a fresh store: every stored call creates a frame
@@ -119,7 +129,7 @@ def main() -> None:
         for sampler in samplers.values():
             sampler.__enter__()
         for mode, server in (("on", stored), ("off", unstored)):  # warm up: first calls
-            run_clients(server.target, 1, 2.0, mode == "on", "warm")
+            run_clients(server.target, 1, 2.0, mode == "on", "warm", args.raw_image)
         for clients in args.clients:
             parts: dict[str, list] = {"off": [], "on": []}
             rss_before = {"off": unstored.rss_mib(), "on": stored.rss_mib()}
@@ -127,7 +137,8 @@ def main() -> None:
                 for mode, server in (("off", unstored), ("on", stored)):
                     cpu_before = cpu_seconds(server.pid)
                     figures = run_clients(server.target, clients, args.seconds / args.rounds,
-                                          mode == "on", f"n{clients}r{round_}")  # fmt: skip
+                                          mode == "on", f"n{clients}r{round_}",
+                                          args.raw_image)  # fmt: skip
                     figures["cpu_s"] = cpu_seconds(server.pid) - cpu_before
                     parts[mode].append(figures)
             for mode, server in (("off", unstored), ("on", stored)):
@@ -137,8 +148,9 @@ def main() -> None:
         for sampler in samplers.values():
             sampler.__exit__(None, None, None)
     log = stored.log()  # the store's commit counts are logged when it closes
-    print(f"model {args.config}, --workers {args.workers}, {args.seconds:.0f} s per row; "
-          "clients send the 3 KITTI sample frames")  # fmt: skip
+    print(f"model {args.config}{' (INT8)' if args.int8 else ''}, --workers {args.workers}, "
+          f"{args.seconds:.0f} s per row; clients send the 3 KITTI sample frames "
+          f"({'raw pixels' if args.raw_image else 'PNG'})")  # fmt: skip
     print("\n| store | clients | frames/s | p50 ms | p95 ms | p99 ms | failed | server CPU ms "
           "per frame | RSS MiB before / after |")  # fmt: skip
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
@@ -171,7 +183,9 @@ def main() -> None:
         Path(args.json).write_text(json.dumps({"rows": rows, "ratios": ratios,
             "rss": {m: s.samples for m, s in samplers.items()}}, indent=2) + "\n")  # fmt: skip
     argv = ["--clients", *map(str, args.clients), "--seconds", str(args.seconds), "--rounds",
-            str(args.rounds), "--workers", str(args.workers), "--config", args.config]  # fmt: skip
+            str(args.rounds), "--workers", str(args.workers), "--config", args.config,
+            *(["--raw-image"] if args.raw_image else []),
+            *(["--int8"] if args.int8 else [])]  # fmt: skip
     print(f"\nrerun: {rerun('service_load', argv)}")
 
 

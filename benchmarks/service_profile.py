@@ -51,8 +51,8 @@ STAGES = (
 GRAPHS = ("graph 2D", "graph 3D")
 # Leaf frames of threads that wait (py-spy does not always see a blocked thread as idle).
 IDLE_LEAVES = ("_worker (concurrent/futures/thread.py", "EpollSelector.select", "Condition.wait",
-               "Event.wait", "LabelStore._commit_loop (serving/store.py", "Thread.run (threading.py",
-               "Thread._bootstrap_inner")  # fmt: skip
+               "Event.wait", "LabelStore._commit_loop (serving/store.py",
+               "Thread.run (threading.py", "Thread._bootstrap_inner")  # fmt: skip
 
 
 def stage_of(stack: str) -> str | None:
