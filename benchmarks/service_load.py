@@ -109,6 +109,8 @@ def main() -> None:
     )
     parser.add_argument("--workers", type=int, default=4, help="the server's (its default)")
     parser.add_argument("--config", default="configs/synth_cpu.toml")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="the server's onnxruntime threads (0: its default)")  # fmt: skip
     parser.add_argument("--raw-image", action="store_true", help="clients send raw pixels")
     parser.add_argument("--int8", action="store_true", help="serve an INT8 version")
     parser.add_argument("--work", help="working directory (default: a temporary one)")
@@ -118,7 +120,7 @@ def main() -> None:
     repository = prepare_repository(work, args.config)
     if args.int8:
         repository = int8_repository(work, repository)
-    server_args = ("--workers", str(args.workers))
+    server_args = ("--workers", str(args.workers), "--threads", str(args.threads))
     rows = []
     run = time.strftime("%Y%m%d-%H%M%S")  # a fresh store: every stored call creates a frame
     with (
@@ -148,7 +150,8 @@ def main() -> None:
         for sampler in samplers.values():
             sampler.__exit__(None, None, None)
     log = stored.log()  # the store's commit counts are logged when it closes
-    print(f"model {args.config}{' (INT8)' if args.int8 else ''}, --workers {args.workers}, "
+    print(f"model {args.config}{' (INT8)' if args.int8 else ''}, --workers {args.workers} "
+          f"--threads {args.threads}, "
           f"{args.seconds:.0f} s per row; clients send the 3 KITTI sample frames "
           f"({'raw pixels' if args.raw_image else 'PNG'})")  # fmt: skip
     print("\n| store | clients | frames/s | p50 ms | p95 ms | p99 ms | failed | server CPU ms "
@@ -183,7 +186,8 @@ def main() -> None:
         Path(args.json).write_text(json.dumps({"rows": rows, "ratios": ratios,
             "rss": {m: s.samples for m, s in samplers.items()}}, indent=2) + "\n")  # fmt: skip
     argv = ["--clients", *map(str, args.clients), "--seconds", str(args.seconds), "--rounds",
-            str(args.rounds), "--workers", str(args.workers), "--config", args.config,
+            str(args.rounds), "--workers", str(args.workers), "--threads", str(args.threads),
+            "--config", args.config,
             *(["--raw-image"] if args.raw_image else []),
             *(["--int8"] if args.int8 else [])]  # fmt: skip
     print(f"\nrerun: {rerun('service_load', argv)}")
