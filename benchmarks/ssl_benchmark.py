@@ -159,6 +159,12 @@ def splits(args: argparse.Namespace) -> tuple[str, str, str]:
     return labeled, unlabeled, dev
 
 
+def stand_in_base(args: argparse.Namespace) -> ExperimentConfig:
+    """The camera stand-in's recipe: the config with --camera-set, never --set (it trains from
+    scratch; --set is for the runs that start from it, a fine-tuning rate, say)."""
+    return apply_overrides(load_config(args.config), args.camera_set)
+
+
 def ssl_config(base: ExperimentConfig, method: str, args: argparse.Namespace, out: Path):
     """A teacher-student run's config: the method's [ssl] settings from the pre-trained run, the
     [ssl] stage's schedule (`teacher_student_config`: constant rates after a warm-up) with
@@ -525,6 +531,11 @@ def main() -> None:
     )
     parser.add_argument("--camera-run", help="the stand-in's run directory (default OUT/camera)")
     parser.add_argument("--camera-steps", type=int, default=camera_init.DEFAULT_STEPS)
+    parser.add_argument("--camera-set", action="append", default=[],
+                        metavar="SECTION.KEY=VALUE",
+                        help="config override for the stand-in's run only (repeatable): it "
+                        "trains from scratch on the config and these, not on --set, which is "
+                        "for the runs that start from it (a fine-tuning rate, say)")  # fmt: skip
     args = parser.parse_args()
     methods = [m for m in args.methods.split(",") if m]
     unknown = [m for m in methods if m not in METHODS]
@@ -547,7 +558,7 @@ def main() -> None:
         camera_init.check_disjoint(Path(args.camera_data), Path(args.data))
         started = time.perf_counter()
         start_2d = camera_init.train_camera_init(
-            base, Path(args.camera_data), camera_run, context, args.camera_steps
+            stand_in_base(args), Path(args.camera_data), camera_run, context, args.camera_steps
         )
         timings["camera"] = time.perf_counter() - started
         base = base.replace("train", init_2d=str(start_2d))

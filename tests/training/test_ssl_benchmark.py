@@ -3,7 +3,8 @@
 import argparse
 import shutil
 
-from benchmarks.ssl_benchmark import splits, ssl_config
+from benchmarks.camera_init import camera_config
+from benchmarks.ssl_benchmark import splits, ssl_config, stand_in_base
 from detmatch.config import load_config
 from detmatch.data.kitti import read_image_set
 from detmatch.matching_policy import MatchingPolicy
@@ -110,3 +111,16 @@ def test_every_benchmark_method_is_a_valid_config():
     assert MatchingPolicy.from_config(detmatch).tau_3d_unmatched == 0.6
     matched_only = apply_overrides(base, METHODS["detmatch-matched-only"]).ssl
     assert MatchingPolicy.from_config(matched_only).tau_3d_unmatched is None
+
+
+def test_the_stand_in_trains_on_camera_set_never_on_the_runs_overrides(tmp_path):
+    args = argparse.Namespace(
+        config=str(TINY),
+        set=["train.lr_2d=0.002"],
+        camera_set=["train.precision=fp32", "train.checkpoint_every=7"],
+    )
+    config = camera_config(stand_in_base(args), tmp_path / "camera", steps=30)
+    tiny = load_config(TINY)
+    assert config.train.lr_2d == tiny.train.lr_2d != 0.002
+    assert (config.train.precision, config.train.checkpoint_every) == ("fp32", 7)
+    assert (config.train.steps, config.train.init_2d, config.data.train_split) == (30, "", "train")
