@@ -12,6 +12,7 @@ weights; `configs/synth_cpu.toml` is the CPU benchmark model, `configs/tiny.toml
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import shutil
 import signal
@@ -36,24 +37,46 @@ TORCH_FREE_SERVE = (
 )
 
 
-def prepare_repository(work: Path, config: str = "configs/tiny.toml") -> Path:
-    """A model repository whose version 000001 (promoted) is `config` with random weights;
-    made once per work directory."""
-    repository = work / f"repository_{Path(config).stem}"
+def prepare_repository(
+    work: Path, config: str = "configs/tiny.toml", checkpoint: str | None = None
+) -> Path:
+    """A model repository whose version 000001 (promoted) is `config` with random weights, or
+    the trained `checkpoint` (its own config); made once per work directory."""
+    if checkpoint:
+        digest = hashlib.sha1(str(Path(checkpoint).resolve()).encode()).hexdigest()
+        name = f"checkpoint_{digest[:10]}"
+    else:
+        name = Path(config).stem
+    repository = work / f"repository_{name}"
     if (repository / "000001" / "PROMOTED").is_file():
         return repository
     work.mkdir(parents=True, exist_ok=True)  # --work may name a folder not made yet
     import torch
 
+    from export.onnx_export import export_checkpoint
+
+    if checkpoint is None:
+        checkpoint = work / f"{name}.pt"
+        _random_checkpoint(config, checkpoint)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        export_checkpoint(checkpoint, repository, promote_version=True, synthetic_frames=1)
+    finally:
+        torch.set_num_threads(threads)
+    return repository
+
+
+def _random_checkpoint(config: str, path: Path) -> None:
+    import torch
+
     from detmatch.config import config_to_dict, load_config
     from detmatch.models.detector2d import CenterNet2D
     from detmatch.models.detector3d import PointPillars3D
-    from export.onnx_export import export_checkpoint
 
     loaded = load_config(REPO / config)
     torch.manual_seed(0)
     classes = len(loaded.data.classes)
-    checkpoint = work / f"{Path(config).stem}.pt"
     torch.save(
         {
             "format": 1,
@@ -63,15 +86,8 @@ def prepare_repository(work: Path, config: str = "configs/tiny.toml") -> Path:
             "model_3d": PointPillars3D(loaded.detector3d, classes).state_dict(),
             "metrics": {},
         },
-        checkpoint,
+        path,
     )
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        export_checkpoint(checkpoint, repository, promote_version=True, synthetic_frames=1)
-    finally:
-        torch.set_num_threads(threads)
-    return repository
 
 
 @dataclass

@@ -14,7 +14,9 @@ latency, failed calls (target 0), the server's RSS at the start, its peak and at
 (sampled every 0.5 s), the store-on / store-off throughput ratio (target at 4 clients: >=
 0.8), and the store's group commit: frames per committed batch (from the server's log).
 --raw-image: the clients send the frames' pixels uncompressed (raw_image) instead of PNG;
---int8: the servers serve an INT8 version of the model (`--quantize int8`).
+--int8: the servers serve an INT8 version of the model (`--quantize int8`); --checkpoint: the
+model is this trained checkpoint instead of --config with random weights (INT8 kernels gain
+little on random weights: BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -111,13 +113,15 @@ def main() -> None:
     parser.add_argument("--config", default="configs/synth_cpu.toml")
     parser.add_argument("--threads", type=int, default=0,
                         help="the server's onnxruntime threads (0: its default)")  # fmt: skip
+    parser.add_argument("--checkpoint", help="serve this trained checkpoint (its own config) "
+                        "instead of --config with random weights")  # fmt: skip
     parser.add_argument("--raw-image", action="store_true", help="clients send raw pixels")
     parser.add_argument("--int8", action="store_true", help="serve an INT8 version")
     parser.add_argument("--work", help="working directory (default: a temporary one)")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
     work = Path(args.work or tempfile.mkdtemp(prefix="service_load_"))
-    repository = prepare_repository(work, args.config)
+    repository = prepare_repository(work, args.config, args.checkpoint)
     if args.int8:
         repository = int8_repository(work, repository)
     server_args = ("--workers", str(args.workers), "--threads", str(args.threads))
@@ -150,7 +154,8 @@ def main() -> None:
         for sampler in samplers.values():
             sampler.__exit__(None, None, None)
     log = stored.log()  # the store's commit counts are logged when it closes
-    print(f"model {args.config}{' (INT8)' if args.int8 else ''}, --workers {args.workers} "
+    model = args.checkpoint or args.config
+    print(f"model {model}{' (INT8)' if args.int8 else ''}, --workers {args.workers} "
           f"--threads {args.threads}, "
           f"{args.seconds:.0f} s per row; clients send the 3 KITTI sample frames "
           f"({'raw pixels' if args.raw_image else 'PNG'})")  # fmt: skip
@@ -188,6 +193,7 @@ def main() -> None:
     argv = ["--clients", *map(str, args.clients), "--seconds", str(args.seconds), "--rounds",
             str(args.rounds), "--workers", str(args.workers), "--threads", str(args.threads),
             "--config", args.config,
+            *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
             *(["--raw-image"] if args.raw_image else []),
             *(["--int8"] if args.int8 else [])]  # fmt: skip
     print(f"\nrerun: {rerun('service_load', argv)}")
