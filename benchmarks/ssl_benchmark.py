@@ -469,6 +469,40 @@ def evaluate_runs(
     return results
 
 
+def stand_in_figures(
+    run: Path, base: ExperimentConfig, dev: FrameDataset, context, frames: int, figure: Path
+) -> dict:
+    """The camera stand-in before any pre-training, with the benchmark's own functions: its 2D
+    moderate AP on dev, and Figure 4's 2D rows (image-plane AP by occlusion) over `frames`
+    frames of the pool, drawn to `figure`."""
+    classes = base.data.classes
+    dev_2d = evaluate_runs({"stand-in": run}, dev, classes, context, base.data.num_workers)
+    curves = analyse_teacher(run, base, frames)[3]
+    occlusion = draw_occlusion_curves(curves, figure) if curves else {}
+    return {
+        "dev_2d": dev_2d["stand-in"]["2d"],
+        "figure4_pr_2d": {name: {level: {"objects": r["objects"], "2d": r["2d"]}
+                                 for level, r in levels.items()}
+                          for name, levels in occlusion.items()},
+    }  # fmt: skip
+
+
+def stand_in_lines(run: Path, figures: dict, classes: tuple[str, ...], frames: int) -> list[str]:
+    """The report's section on the stand-in (stand_in_figures)."""
+    dev = figures["dev_2d"]
+    lines = [f"## The 2D stand-in before pre-training ({run})", "",
+             "| dev, 2D moderate R40 | " + " | ".join(classes) + " | mAP |",
+             "|---|" + "---|" * (len(classes) + 1),
+             "| stand-in | " + " | ".join(f"{dev[c]:.1f}" for c in classes)
+             + f" | {dev['mAP']:.1f} |", "",
+             f"Figure 4's 2D rows for it, {frames} pool frames (figure4_pr_stand_in.png):", "",
+             "| class | occlusion | objects | 2D AP |", "|---|---|---|---|"]  # fmt: skip
+    for name, levels in figures["figure4_pr_2d"].items():
+        for level, r in levels.items():
+            lines.append(f"| {name} | {level} | {r['objects']} | {r['2d']:.1f} |")
+    return lines + [""]
+
+
 def ap_table(results: dict[str, dict], modality: str, classes: tuple[str, ...]) -> list[str]:
     """Markdown rows: AP per class, mAP, gain over the better labeled-only baseline."""
     baselines = [results[b][modality]["mAP"] for b in BASELINES if b in results]
@@ -596,6 +630,11 @@ def main() -> None:
     if recall:
         draw_figure4(recall, out / "figure4.png")
     occlusion_ap = draw_occlusion_curves(curves, out / "figure4_pr.png") if curves else {}
+    stand_in = {}
+    if args.camera_data:
+        dev_set = FrameDataset(args.data, dev, classes, base.data.image_size, grid)
+        stand_in = stand_in_figures(camera_run, base, dev_set, context, args.analysis_frames,
+                                    out / "figure4_pr_stand_in.png")  # fmt: skip
     timings["report"] = time.perf_counter() - started
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]
@@ -646,6 +685,8 @@ def main() -> None:
     for name, levels in occlusion_ap.items():
         for level, r in levels.items():
             lines.append(f"| {name} | {level} | {r['objects']} | {r['2d']:.1f} | {r['3d']:.1f} |")
+    if stand_in:
+        lines += [""] + stand_in_lines(camera_run, stand_in, classes, args.analysis_frames)
     lines += ["", f"Wall seconds: {json.dumps({k: round(v) for k, v in timings.items()})}"]
     lines += ["", f"rerun: {rerun('ssl_benchmark')}"]
     report = "\n".join(lines) + "\n"
@@ -656,6 +697,7 @@ def main() -> None:
         "world": world,
         "resolution": resolution,
         "init_2d": base.train.init_2d,
+        "stand_in": stand_in,
         "splits": {"labeled": labeled, "unlabeled": unlabeled, "dev": dev},
         "results": results,
         "learning_curve": curve,
