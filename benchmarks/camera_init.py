@@ -13,7 +13,6 @@ finished) and starts every method's pre-training from it.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +20,7 @@ from benchmarks.harness import benchmark_parser, rerun
 from detmatch.checkpoints import list_checkpoints
 from detmatch.config import DEVICES, ExperimentConfig, apply_overrides, load_config
 from detmatch.data.dataset import Batch
-from detmatch.data.synth.world import read_resolution
+from detmatch.data.synth.world import read_resolution, synth_record
 from detmatch.training.distributed import DistributedContext, init_distributed
 from detmatch.training.evaluation import evaluate_detectors
 from detmatch.training.trainer import SupervisedTrainer
@@ -57,10 +56,10 @@ class CameraTrainer(SupervisedTrainer):
 
 def synth_seed(root: Path) -> int:
     """The generator seed in a synthetic data set's synth.json."""
-    record = Path(root) / "synth.json"
-    if not record.is_file():
+    record = synth_record(root)
+    if not record:
         raise SystemExit(f"{root} has no synth.json: the camera's set must be synthetic")
-    return int(json.loads(record.read_text())["seed"])
+    return int(record["seed"])
 
 
 def check_disjoint(camera_data: Path, benchmark_data: Path) -> None:

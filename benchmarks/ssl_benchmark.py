@@ -615,15 +615,11 @@ def main() -> None:
     runs = {"labeled-only": out / "pretrain", **{m: out / m for m in methods}}
     workers = base.data.num_workers
     scored = {"dev": dev} if args.skip_val else {"dev": dev, "val": "val"}
+    datasets = {split: FrameDataset(args.data, name, classes, base.data.image_size, grid)
+                for split, name in scored.items()}  # fmt: skip
     results = {
-        split: evaluate_runs(
-            runs,
-            FrameDataset(args.data, name, classes, base.data.image_size, grid),
-            classes,
-            context,
-            workers,
-        )  # fmt: skip
-        for split, name in scored.items()
+        split: evaluate_runs(runs, dataset, classes, context, workers)
+        for split, dataset in datasets.items()
     }
     quality, points, recall, curves = analyse_teacher(out / "pretrain", base, args.analysis_frames)
     correlation = draw_figure(points, out / "figure3.png") if len(points) else {}
@@ -632,9 +628,9 @@ def main() -> None:
     occlusion_ap = draw_occlusion_curves(curves, out / "figure4_pr.png") if curves else {}
     stand_in = {}
     if args.camera_data:
-        dev_set = FrameDataset(args.data, dev, classes, base.data.image_size, grid)
-        stand_in = stand_in_figures(camera_run, base, dev_set, context, args.analysis_frames,
-                                    out / "figure4_pr_stand_in.png")  # fmt: skip
+        figure = out / "figure4_pr_stand_in.png"
+        stand_in = stand_in_figures(camera_run, base, datasets["dev"], context,
+                                    args.analysis_frames, figure)  # fmt: skip
     timings["report"] = time.perf_counter() - started
 
     lines = [f"# Semi-supervised benchmark, seed {args.seed}", ""]

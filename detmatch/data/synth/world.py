@@ -75,7 +75,7 @@ def get_world(name: str) -> World:
     return WORLDS[name]
 
 
-def _synth_record(root: Path) -> dict:
+def synth_record(root: Path) -> dict:
     """A data set's synth.json ({} for a data set that synth did not write)."""
     record = Path(root) / "synth.json"
     return json.loads(record.read_text()) if record.is_file() else {}
@@ -84,12 +84,12 @@ def _synth_record(root: Path) -> dict:
 def read_world(root: Path) -> str:
     """The world version of a data set: its synth.json's "world" ("v1" for sets written
     before versions were recorded); "" for a data set that synth did not write (KITTI)."""
-    record = _synth_record(root)
+    record = synth_record(root)
     return str(record.get("world", "v1")) if record else ""
 
 
 def read_resolution(root: Path) -> str:
     """The camera resolution a synthetic data set was rendered at ("full" or "half"); ""
     for a data set that synth did not write."""
-    record = _synth_record(root)
+    record = synth_record(root)
     return str(record.get("resolution", "half")) if record else ""
