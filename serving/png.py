@@ -18,12 +18,13 @@ import zlib
 
 import numpy as np
 
+from serving.decode import PNG_MAGIC
+
 try:  # ISA-L's deflate; zlib's Huffman-only coding without it
     from isal import isal_zlib as _isal
 except ImportError:  # pragma: no cover - isal is in the serve extra
     _isal = None
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _SUB_FILTER = 1
 _RGB8 = (8, 2, 0, 0, 0)  # bit depth, colour type RGB, deflate, adaptive filtering, no interlace
 
@@ -47,7 +48,7 @@ def encode_png(pixels: np.ndarray) -> bytes:
     np.subtract(rows[:, 3:], rows[:, :-3], out=filtered[:, 4:])  # wraps modulo 256, as PNG's
     data = _deflate(filtered)
     header = struct.pack(">II", width, height) + bytes(_RGB8)
-    return PNG_SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"IDAT", data) + _chunk(b"IEND", b"")
+    return PNG_MAGIC + _chunk(b"IHDR", header) + _chunk(b"IDAT", data) + _chunk(b"IEND", b"")
 
 
 def _deflate(data: np.ndarray) -> bytes:
