@@ -1,13 +1,18 @@
-"""The two exported graphs: preprocessing and decoding inside, one frame per call.
+"""The two exported graphs: preprocessing and decoding inside, a batch of frames per call.
 
-2D: the original (H, W, 3) uint8 RGB image of any size -> Cast, Transpose, Resize (linear,
+Every input and output has a leading batch axis ("batch", dynamic), as Triton's dynamic
+batcher and the service's (serving.batching) expect; one frame is a batch of 1.
+
+2D: B original (H, W, 3) uint8 RGB images of one size -> Cast, Transpose, Resize (linear,
 half_pixel: torch's bilinear F.interpolate with align_corners=False and no antialiasing, the
 op training's `image_to_tensor` uses) to the config's input size -> CenterNet2D forward
 (normalisation included) -> max-pool peaks + top-k decode -> boxes scaled back to the
 original image's pixels, as `ImageTransform.invert` does.
 
-3D: `pillarize`'s output for one frame, a dynamic number of pillars P -> PointPillars3D
-forward (ScatterND onto the BEV canvas) -> decode to LiDAR-frame boxes.
+3D: `pillarize`'s output for B frames, padded to one number of pillars P (dynamic): a frame
+with fewer pillars repeats its last pillar, which scatters the same feature onto the same
+cell again (`serving.labeler.batch_pillars`) -> PointPillars3D forward (ScatterND onto B BEV
+canvases) -> decode to LiDAR-frame boxes.
 
 Both also output their raw head maps, so parity can be checked before decoding.
 Exported with torch.onnx's TorchScript exporter (dynamo=False): the torch.export-based
@@ -27,8 +32,10 @@ from torch import nn
 from torch.onnx.operators import shape_as_tensor
 
 from detmatch.models.contract import Detector2D, Detector3D
+from detmatch.models.pillars import Pillars, batch_pillars
 from serving.manifest import TensorSpec
 from serving.repository import (
+    BATCH_AXIS,
     DECODED_OUTPUTS,
     INPUTS_2D,
     INPUTS_3D,
@@ -45,9 +52,9 @@ EXPORTER = "torch.onnx.export (TorchScript exporter, dynamo=False)"
 
 
 class ImageDetector2DGraph(nn.Module):
-    """(H, W, 3) uint8 RGB image -> boxes (K, 4) xyxy pixels of that image, scores (K,),
-    classes (K,) int64, probabilities (K, C), and the raw maps heatmap logits (1, C, h, w),
-    size (1, 2, h, w), offset (1, 2, h, w)."""
+    """(B, H, W, 3) uint8 RGB images -> boxes (B, K, 4) xyxy pixels of the images, scores
+    (B, K), classes (B, K) int64, probabilities (B, K, C), and the raw maps heatmap logits
+    (B, C, h, w), size (B, 2, h, w), offset (B, 2, h, w)."""
 
     def __init__(self, detector: Detector2D, input_size: tuple[int, int]) -> None:
         super().__init__()
@@ -56,8 +63,8 @@ class ImageDetector2DGraph(nn.Module):
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
         width, height = self.input_size
-        original = shape_as_tensor(image)[:2].to(torch.float32)
-        x = image.permute(2, 0, 1).unsqueeze(0).to(torch.float32)
+        original = shape_as_tensor(image)[1:3].to(torch.float32)
+        x = image.permute(0, 3, 1, 2).to(torch.float32)
         x = F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
         maps = self.detector(x)
         boxes, scores, classes, probabilities = self.detector.decode(maps)
@@ -65,15 +72,15 @@ class ImageDetector2DGraph(nn.Module):
         # ImageTransform.invert_detections does ([0, W0 - 1] x [0, H0 - 1]).
         scale = torch.stack([original[1] / width, original[0] / height]).repeat(2)
         limit = torch.stack([original[1] - 1, original[0] - 1]).repeat(2)
-        boxes = torch.minimum(torch.clamp(boxes[0] * scale, min=0.0), limit)
-        return boxes, scores[0], classes[0], probabilities[0], *maps
+        boxes = torch.minimum(torch.clamp(boxes * scale, min=0.0), limit)
+        return boxes, scores, classes, probabilities, *maps
 
 
 class PillarDetector3DGraph(nn.Module):
-    """features (P, M, 9) float32, coords (P, 2) int64 (iy, ix), num_points (P,) int64 ->
-    boxes (K, 7) LiDAR x y z l w h yaw, scores (K,), classes (K,) int64, probabilities (K, C),
-    and the detector's raw outputs (batch of 1; PointPillars3D: heatmap logits (1, C, h, w)
-    and regression (1, 8, h, w))."""
+    """features (B, P, M, 9) float32, coords (B, P, 2) int64 (iy, ix), num_points (B, P)
+    int64 -> boxes (B, K, 7) LiDAR x y z l w h yaw, scores (B, K), classes (B, K) int64,
+    probabilities (B, K, C), and the detector's raw outputs (PointPillars3D: heatmap logits
+    (B, C, h, w) and regression (B, 8, h, w))."""
 
     def __init__(self, detector: Detector3D) -> None:
         super().__init__()
@@ -82,10 +89,14 @@ class PillarDetector3DGraph(nn.Module):
     def forward(
         self, features: torch.Tensor, coords: torch.Tensor, num_points: torch.Tensor
     ) -> tuple[torch.Tensor, ...]:
-        batch_coords = torch.cat([torch.zeros_like(coords[:, :1]), coords], dim=1)
-        maps = self.detector(features, batch_coords, num_points, batch_size=1)
+        batch, pillars = features.shape[0], features.shape[1]
+        frame = torch.arange(batch, dtype=coords.dtype).reshape(-1, 1, 1).expand(-1, pillars, 1)
+        batch_coords = torch.cat([frame, coords], dim=2).reshape(-1, 3)
+        maps = self.detector(
+            features.flatten(0, 1), batch_coords, num_points.flatten(), batch_size=batch
+        )
         boxes, scores, classes, probabilities = self.detector.decode(maps)
-        return boxes[0], scores[0], classes[0], probabilities[0], *maps
+        return boxes, scores, classes, probabilities, *maps
 
 
 def _export(
@@ -125,30 +136,36 @@ def _export(
 
 
 def _declare_output_shapes(path: Path, shapes: dict[str, tuple[int, ...]]) -> None:
-    """Replace the tracer's generated names for output dimensions (e.g. 'Mulboxes_dim_0') by
-    their sizes: every output's shape is fixed by the config (K detections, the head maps of
-    the fixed input size or pillar grid), whatever the input's size."""
+    """Replace the tracer's generated names for output dimensions (e.g. 'Mulboxes_dim_0'):
+    the first is the batch axis, "batch"; every other is fixed by the config (K detections,
+    the head maps of the fixed input size or pillar grid), whatever the input's size."""
     model = onnx.load(str(path))
     for output in model.graph.output:
         dims = output.type.tensor_type.shape.dim
-        for dim, size in zip(dims, shapes[output.name], strict=True):
+        for axis, (dim, size) in enumerate(zip(dims, shapes[output.name], strict=True)):
             dim.Clear()
-            dim.dim_value = int(size)
+            if axis == 0:
+                dim.dim_param = BATCH_AXIS
+            else:
+                dim.dim_value = int(size)
     onnx.save(model, str(path))
 
 
 def export_detector_2d(
     detector: Detector2D, input_size: tuple[int, int], path: Path, example_image: np.ndarray
 ) -> None:
-    """Write the 2D graph to path (dynamic image height and width) and run onnx.checker."""
+    """Write the 2D graph to path (dynamic batch, image height and width) and run
+    onnx.checker. Traced on a batch of two (the example and its mirror image), so that no
+    size-1 batch axis is taken for a constant."""
     graph = ImageDetector2DGraph(detector, input_size)
+    image = np.asarray(example_image, dtype=np.uint8)
     _export(
         graph,
-        (torch.from_numpy(np.array(example_image, dtype=np.uint8, copy=True)),),
+        (torch.from_numpy(np.stack([image, image[:, ::-1]])),),
         path,
         INPUTS_2D,
         DECODED_OUTPUTS + detector.output_names,
-        {"image": {0: "height", 1: "width"}},
+        {"image": {0: BATCH_AXIS, 1: "height", 2: "width"}},
     )
 
 
@@ -157,18 +174,22 @@ def export_detector_3d(
     path: Path,
     example_pillars: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
-    """Write the 3D graph to path (dynamic number of pillars) and run onnx.checker."""
+    """Write the 3D graph to path (dynamic batch and number of pillars) and run
+    onnx.checker. Traced on a batch of two: the example frame, and the example frame with
+    only its first half of pillars (padded as `batch_pillars` pads)."""
     if len(example_pillars[0]) == 0:
         raise ValueError("the example frame for tracing the 3D graph has no pillars")
-    graph = PillarDetector3DGraph(detector)
+    whole = Pillars(*example_pillars)
+    half = Pillars(*(a[: max(1, len(whole) // 2)] for a in example_pillars))
     _export(
-        graph,
-        tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in example_pillars),
+        PillarDetector3DGraph(detector),
+        tuple(torch.from_numpy(a) for a in batch_pillars([whole, half])),
         path,
         INPUTS_3D,
         DECODED_OUTPUTS + detector.output_names,
-        {name: {0: "pillars"} for name in INPUTS_3D},
-    )
+        {"features": {0: BATCH_AXIS, 1: "pillars"}, "coords": {0: BATCH_AXIS, 1: "pillars"},
+         "num_points": {0: BATCH_AXIS, 1: "pillars"}},
+    )  # fmt: skip
 
 
 def io_spec(path: Path) -> dict[str, tuple[TensorSpec, ...]]:

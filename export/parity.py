@@ -36,7 +36,7 @@ from detmatch.config import ExperimentConfig
 from detmatch.data.dataset import collate, make_sample
 from detmatch.data.kitti import KittiDataset
 from detmatch.models.contract import Detector2D, Detector3D, forward_pillars
-from detmatch.models.pillars import pillarize
+from detmatch.models.pillars import batch_pillars, pillarize
 from detmatch.structures import Frame
 from export.graphs import ExportCheckError
 from serving.repository import DECODED_OUTPUTS, INPUTS_3D
@@ -302,11 +302,15 @@ def check_parity(
     results = []
     for source, frame in frames:
         reference_2d, reference_3d, pillars = torch_reference(model_2d, model_3d, config, frame)
-        outputs_2d = session_2d.run(list(names_2d), {"image": frame.image})
-        arrays = pillarize(frame.points, model_3d.grid).arrays
+        # A batch of one frame: the decoded outputs' batch axis dropped, the raw maps' kept
+        # (the reference's have theirs).
+        outputs_2d = session_2d.run(list(names_2d), {"image": frame.image[None]})
+        arrays = batch_pillars([pillarize(frame.points, model_3d.grid)])
         outputs_3d = session_3d.run(list(names_3d), dict(zip(INPUTS_3D, arrays, strict=True)))
-        got_2d = dict(zip(names_2d, outputs_2d, strict=True))
-        got_3d = dict(zip(names_3d, outputs_3d, strict=True))
+        got_2d = {n: o[0] if n in DECODED_OUTPUTS else o
+                  for n, o in zip(names_2d, outputs_2d, strict=True)}  # fmt: skip
+        got_3d = {n: o[0] if n in DECODED_OUTPUTS else o
+                  for n, o in zip(names_3d, outputs_3d, strict=True)}  # fmt: skip
         result = FrameParity(source, frame.frame_id, frame.image_size, pillars)
         for model, reference, got, raw in (
             ("2d", reference_2d, got_2d, model_2d.output_names),

@@ -29,7 +29,7 @@ import numpy as np
 
 from detmatch.data.kitti import KittiDataset
 from detmatch.geometry import pairwise_iou_2d, pairwise_iou_3d
-from detmatch.models.pillars import pillarize
+from detmatch.models.pillars import batch_pillars, pillarize
 from export.graphs import ExportCheckError
 from serving.labeler import INPUTS_3D, Labeler
 from serving.manifest import QuantizationRecord
@@ -108,8 +108,8 @@ def spread_frames(ids: list[str], count: int) -> list[str]:
 def graph_feeds(frames, grid) -> dict[str, list[dict[str, np.ndarray]]]:
     """Frames -> each graph's input feeds ("2d", "3d"), as the labeler feeds the graphs."""
     return {
-        "2d": [{"image": np.ascontiguousarray(f.image)} for f in frames],
-        "3d": [dict(zip(INPUTS_3D, pillarize(f.points, grid).arrays, strict=True))
+        "2d": [{"image": np.ascontiguousarray(f.image[None])} for f in frames],
+        "3d": [dict(zip(INPUTS_3D, batch_pillars([pillarize(f.points, grid)]), strict=True))
                for f in frames],
     }  # fmt: skip
 

@@ -17,16 +17,19 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from detmatch.matching_policy import MatchingPolicy, probability_threshold
-from detmatch.models.pillars import PILLAR_FEATURES, Pillars, pillarize
+from detmatch.models.pillars import batch_pillars, pillarize
 from detmatch.pseudo_labels import MatchedLabels, match_detections
 from detmatch.structures import Calibration, Detections
 from serving.repository import (
+    BATCH_AXIS,
+    CHECKPOINT_FILE,
     DECODED_OUTPUTS,
     INPUTS_2D,
     INPUTS_3D,
@@ -40,6 +43,30 @@ from serving.sessions import SessionSettings, make_session
 
 
 @dataclass(frozen=True)
+class LabelOptions:
+    """A frame's overrides of the manifest's thresholds (see `Labeler.label`); None: the
+    manifest's."""
+
+    tau_hung: float | None = None
+    score_threshold_2d: float | None = None
+    score_threshold_3d: float | None = None
+    tau_3d_outside_view: float | None = None
+    outside_view_fallback: bool = True
+    tau_3d_unmatched: float | None = None
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One paired frame to label: image (H, W, 3) uint8 RGB, points (N, 4) float32, its
+    calibration, and its options."""
+
+    image: np.ndarray
+    points: np.ndarray
+    calib: Calibration
+    options: LabelOptions = LabelOptions()
+
+
+@dataclass(frozen=True)
 class FrameLabels:
     """The labeler's answer for one frame.
 
@@ -47,7 +74,8 @@ class FrameLabels:
     boxes, both classes and scores, cost, provenance); detections_2d / detections_3d: each
     detector's detections above its score threshold (labels index into them);
     thresholds: the values used; timings: seconds per stage ('detector2d', 'pillarize',
-    'detector3d', 'matching') and in all ('total', input checks included).
+    'detector3d', 'matching') and in all ('total', input checks included); batch_size: the
+    frames labeled in the same graph calls (`Labeler.label_batch`).
     """
 
     model_version: str
@@ -58,6 +86,7 @@ class FrameLabels:
     detections_3d: Detections
     thresholds: dict[str, float | None]
     timings: dict[str, float] = field(default_factory=dict)
+    batch_size: int = 1
 
     def __len__(self) -> int:
         return len(self.labels)
@@ -104,6 +133,13 @@ class Labeler:
                     f"{name} of {self.path} has inputs {got_inputs} and outputs "
                     f"{sorted(got_outputs)}; expected {inputs} and {DECODED_OUTPUTS}"
                 )
+            if session.get_inputs()[0].shape[0] != BATCH_AXIS:
+                raise RepositoryError(
+                    f"{name} of {self.path} takes one frame, without a leading batch axis: it "
+                    "was exported before batched graphs (2026-12); export its checkpoint "
+                    f"again: detmatch-export --checkpoint {self.path / CHECKPOINT_FILE} "
+                    f"--repository {self.path.parent}"
+                )
 
     @classmethod
     def from_repository(
@@ -139,34 +175,43 @@ class Labeler:
     def detect_2d(self, image: np.ndarray) -> Detections:
         """(H, W, 3) uint8 RGB -> the 2D graph's top-k detections (unthresholded), boxes in the
         image's pixels."""
-        outputs = self.session_2d.run(list(DECODED_OUTPUTS), {"image": np.ascontiguousarray(image)})
-        return _detections(outputs)
+        return self.detect_2d_batch([image])[0]
+
+    def detect_2d_batch(self, images: Sequence[np.ndarray]) -> list[Detections]:
+        """Images of one size, (H, W, 3) uint8 RGB each, in one graph call -> each image's
+        top-k detections (unthresholded), boxes in its pixels."""
+        if len({image.shape for image in images}) != 1:
+            raise ValueError("a 2D batch holds images of one size")
+        batch = np.ascontiguousarray(images[0][None] if len(images) == 1 else np.stack(images))
+        return _detections(self.session_2d.run(list(DECODED_OUTPUTS), {"image": batch}))
 
     def detect_3d(self, points: np.ndarray) -> tuple[Detections, float, float]:
         """(N, 4) float32 LiDAR points -> (the 3D graph's top-k detections (unthresholded),
         seconds in pillarize, seconds in the graph)."""
-        start = time.perf_counter()
-        pillars = pillarize(points, self.grid)
-        if len(pillars) == 0:
-            # No occupied pillar. A single pillar with zero points at cell (0, 0) scatters a
-            # zero feature, exactly the empty canvas; the graph needs at least one pillar.
-            pillars = Pillars(
-                np.zeros((1, self.grid.max_points_per_pillar, PILLAR_FEATURES), np.float32),
-                np.zeros((1, 2), dtype=np.int64),
-                np.zeros(1, dtype=np.int64),
-            )
+        detections, pillarize_s, graph_s = self.detect_3d_batch([points])
+        return detections[0], pillarize_s[0], graph_s
+
+    def detect_3d_batch(
+        self, clouds: Sequence[np.ndarray]
+    ) -> tuple[list[Detections], list[float], float]:
+        """(N, 4) float32 LiDAR point clouds in one graph call -> (each cloud's top-k
+        detections (unthresholded), seconds each spent in pillarize, seconds in the graph)."""
+        pillars, pillarize_s = [], []
+        for points in clouds:
+            mark = time.perf_counter()
+            pillars.append(pillarize(points, self.grid))
+            pillarize_s.append(time.perf_counter() - mark)
         mark = time.perf_counter()
-        outputs = self.session_3d.run(
-            list(DECODED_OUTPUTS), dict(zip(INPUTS_3D, pillars.arrays, strict=True))
-        )
-        return _detections(outputs), mark - start, time.perf_counter() - mark
+        inputs = dict(zip(INPUTS_3D, batch_pillars(pillars), strict=True))
+        outputs = self.session_3d.run(list(DECODED_OUTPUTS), inputs)
+        return _detections(outputs), pillarize_s, time.perf_counter() - mark
 
     def warm_up(self, image_size: tuple[int, int] = (1242, 375)) -> None:
         """Run both graphs once on an empty frame (first runs allocate and tune kernels)."""
         self.detect_2d(np.zeros((image_size[1], image_size[0], 3), dtype=np.uint8))
         self.detect_3d(np.zeros((0, 4), dtype=np.float32))
 
-    # --- a frame ---------------------------------------------------------------------------------
+    # --- frames ----------------------------------------------------------------------------------
 
     def label(
         self,
@@ -190,52 +235,98 @@ class Labeler:
         outside the view). Raises ValueError naming the input and the problem for malformed
         inputs.
         """
+        options = LabelOptions(
+            tau_hung, score_threshold_2d, score_threshold_3d, tau_3d_outside_view,
+            outside_view_fallback, tau_3d_unmatched,
+        )  # fmt: skip
+        (result,) = self.label_batch([Frame(image, points, calib, options)])
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+    def label_batch(self, frames: Sequence[Frame]) -> list[FrameLabels | ValueError]:
+        """Label frames together: one 2D graph call per image size and one 3D graph call for
+        them all, then each frame's thresholds and matching. Each frame's answer is its own:
+        the labels `label` gives it alone (to float rounding: a batch is one kernel call), or
+        the ValueError its malformed input or option raises, which fails no other frame.
+        Timings are per frame: the graphs' time is the batch call's divided among its frames,
+        and 'total' is the batch's."""
         start = time.perf_counter()
-        validate_frame(image, points, calib)
+        results: list[FrameLabels | ValueError | None] = [None] * len(frames)
+        accepted: dict[int, tuple] = {}
+        for i, frame in enumerate(frames):
+            try:
+                validate_frame(frame.image, frame.points, frame.calib)
+                accepted[i] = self._thresholds(frame.options)
+            except ValueError as error:
+                results[i] = error
+        if not accepted:
+            return results
+        timings: dict[int, dict[str, float]] = {i: {} for i in accepted}
+        detections_2d: dict[int, Detections] = {}
+        by_size: dict[tuple, list[int]] = {}
+        for i in accepted:
+            by_size.setdefault(frames[i].image.shape, []).append(i)
+        for group in by_size.values():
+            mark = time.perf_counter()
+            found = self.detect_2d_batch([frames[i].image for i in group])
+            share = (time.perf_counter() - mark) / len(group)
+            for i, detections in zip(group, found, strict=True):
+                detections_2d[i], timings[i]["detector2d"] = detections, share
+        found_3d, pillarize_s, graph_s = self.detect_3d_batch([frames[i].points for i in accepted])
+        for i, detections_3d, seconds in zip(accepted, found_3d, pillarize_s, strict=True):
+            mark = time.perf_counter()
+            frame, (policy, threshold_2d, threshold_3d) = frames[i], accepted[i]
+            kept_2d = detections_2d[i][detections_2d[i].scores > threshold_2d]
+            kept_3d = detections_3d[detections_3d.scores > threshold_3d]
+            image_size = (int(frame.image.shape[1]), int(frame.image.shape[0]))
+            labels = match_detections(kept_3d, kept_2d, frame.calib, image_size, policy)
+            timings[i].update(pillarize=seconds, detector3d=graph_s / len(accepted),
+                              matching=time.perf_counter() - mark)  # fmt: skip
+            results[i] = FrameLabels(
+                model_version=self.version,
+                classes=self.classes,
+                image_size=image_size,
+                labels=labels,
+                detections_2d=kept_2d,
+                detections_3d=kept_3d,
+                thresholds={
+                    "tau_hung": policy.tau_hung,
+                    "score_threshold_2d": threshold_2d,
+                    "score_threshold_3d": threshold_3d,
+                    "tau_3d_outside_view": policy.tau_3d_outside_view,
+                    "tau_3d_unmatched": policy.tau_3d_unmatched,
+                },
+                timings=timings[i],
+                batch_size=len(accepted),
+            )
+        end = time.perf_counter()
+        for i in accepted:
+            timings[i]["total"] = end - start
+        return results
+
+    def _thresholds(self, options: LabelOptions) -> tuple[MatchingPolicy, float, float]:
+        """The matching policy and both score thresholds a frame's options give (ValueError
+        naming the option for a bad value)."""
         policy = self.policy.with_overrides(
-            tau_hung=tau_hung,
-            tau_3d_outside_view=tau_3d_outside_view,
-            tau_3d_unmatched=tau_3d_unmatched,
-            outside_view_fallback=outside_view_fallback,
+            tau_hung=options.tau_hung,
+            tau_3d_outside_view=options.tau_3d_outside_view,
+            tau_3d_unmatched=options.tau_3d_unmatched,
+            outside_view_fallback=options.outside_view_fallback,
         )
         threshold_2d = probability_threshold(
             "score_threshold_2d",
-            self.score_threshold_2d if score_threshold_2d is None else score_threshold_2d,
+            self.score_threshold_2d
+            if options.score_threshold_2d is None
+            else options.score_threshold_2d,
         )
         threshold_3d = probability_threshold(
             "score_threshold_3d",
-            self.score_threshold_3d if score_threshold_3d is None else score_threshold_3d,
+            self.score_threshold_3d
+            if options.score_threshold_3d is None
+            else options.score_threshold_3d,
         )
-
-        timings: dict[str, float] = {}
-        mark = time.perf_counter()
-        detections_2d = self.detect_2d(image)
-        timings["detector2d"] = time.perf_counter() - mark
-        detections_3d, timings["pillarize"], timings["detector3d"] = self.detect_3d(points)
-        mark = time.perf_counter()
-        detections_2d = detections_2d[detections_2d.scores > threshold_2d]
-        detections_3d = detections_3d[detections_3d.scores > threshold_3d]
-        image_size = (int(image.shape[1]), int(image.shape[0]))
-        labels = match_detections(detections_3d, detections_2d, calib, image_size, policy)
-        end = time.perf_counter()
-        timings["matching"] = end - mark
-        timings["total"] = end - start
-        return FrameLabels(
-            model_version=self.version,
-            classes=self.classes,
-            image_size=image_size,
-            labels=labels,
-            detections_2d=detections_2d,
-            detections_3d=detections_3d,
-            thresholds={
-                "tau_hung": policy.tau_hung,
-                "score_threshold_2d": threshold_2d,
-                "score_threshold_3d": threshold_3d,
-                "tau_3d_outside_view": policy.tau_3d_outside_view,
-                "tau_3d_unmatched": policy.tau_3d_unmatched,
-            },
-            timings=timings,
-        )
+        return policy, threshold_2d, threshold_3d
 
 
 def validate_frame(image: np.ndarray, points: np.ndarray, calib: Calibration) -> None:
@@ -261,11 +352,15 @@ def validate_frame(image: np.ndarray, points: np.ndarray, calib: Calibration) ->
         raise ValueError(f"calib: expected a Calibration, got {type(calib).__name__}")
 
 
-def _detections(outputs: list[np.ndarray]) -> Detections:
+def _detections(outputs: list[np.ndarray]) -> list[Detections]:
+    """A graph's batched decoded outputs -> each frame's detections."""
     boxes, scores, classes, probabilities = outputs
-    return Detections(
-        boxes.astype(np.float64),
-        scores.astype(np.float64),
-        classes.astype(np.int64),
-        probabilities.astype(np.float64),
-    )
+    return [
+        Detections(
+            boxes[i].astype(np.float64),
+            scores[i].astype(np.float64),
+            classes[i].astype(np.int64),
+            probabilities[i].astype(np.float64),
+        )
+        for i in range(len(boxes))
+    ]

@@ -45,6 +45,8 @@ STALE_STAGING_SECONDS = 24 * 3600
 INPUTS_2D = ("image",)
 INPUTS_3D = ("features", "coords", "num_points")
 DECODED_OUTPUTS = ("boxes", "scores", "classes", "probabilities")
+# Every input and output of both graphs leads with this dynamic axis: a call labels a batch.
+BATCH_AXIS = "batch"
 
 
 class RepositoryError(ValueError):

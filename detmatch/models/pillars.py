@@ -8,6 +8,7 @@ or a batch's tensors (`detmatch.data.dataset.collate_pillars`).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,7 +64,7 @@ class Pillars:
     counts (P,) int64 points per pillar in [1, M]; batch_size: frames (1 for one frame).
 
     numpy arrays for one frame (what `pillarize` returns and the labeler feeds onnxruntime),
-    torch tensors for a batch. The exported 3D graph takes the three arrays of one frame.
+    torch tensors for a batch. `batch_pillars` makes frames' arrays the exported 3D graph's inputs.
     """
 
     features: Any
@@ -94,6 +95,39 @@ class Pillars:
             coords=self.coords.to(device, non_blocking=True),
             counts=self.counts.to(device, non_blocking=True),
         )
+
+
+def batch_pillars(frames: Sequence[Pillars]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames' pillars (each `pillarize`'s) -> the exported 3D graph's batched inputs:
+    features (B, P, M, 9) float32, coords (B, P, 2) int64, num_points (B, P) int64, P the
+    most pillars of any frame. A frame with fewer repeats its last pillar up to P: the same
+    feature scattered onto the same cell again, so its canvas, and its detections, are
+    unchanged. A frame with no pillar gets one with zero points at cell (0, 0), which scatters
+    a zero feature: exactly the empty canvas (the graph needs at least one pillar). A batch
+    of one is a view of its frame's arrays, without a copy."""
+    if not frames:
+        raise ValueError("batch_pillars: no frames")
+    frames = [f if len(f) else _empty_pillar(f.features.shape[1]) for f in frames]
+    if len(frames) == 1:
+        return tuple(np.asarray(a)[None] for a in frames[0].arrays)
+    width = max(len(f) for f in frames)
+    features = np.empty((len(frames), width, *frames[0].features.shape[1:]), np.float32)
+    coords = np.empty((len(frames), width, 2), np.int64)
+    counts = np.empty((len(frames), width), np.int64)
+    for i, frame in enumerate(frames):
+        n = len(frame)
+        for out, array in zip((features, coords, counts), frame.arrays, strict=True):
+            out[i, :n] = array
+            out[i, n:] = array[n - 1]
+    return features, coords, counts
+
+
+def _empty_pillar(max_points: int) -> Pillars:
+    return Pillars(
+        np.zeros((1, max_points, PILLAR_FEATURES), np.float32),
+        np.zeros((1, 2), dtype=np.int64),
+        np.zeros(1, dtype=np.int64),
+    )
 
 
 def pillarize(points: np.ndarray, grid: PillarGrid) -> Pillars:

@@ -47,11 +47,14 @@ def test_manifest_describes_models_thresholds_training_and_files(exported_reposi
     assert manifest.classes == ("Car", "Pedestrian", "Cyclist")
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", manifest.exported_at)
     spec_2d, spec_3d = manifest.model_2d, manifest.model_3d
-    assert spec_2d.inputs == (TensorSpec("image", "uint8", ("height", "width", 3)),)
-    assert [i.name for i in spec_3d.inputs] == ["features", "coords", "num_points"]
-    assert spec_3d.inputs[0].shape == ("pillars", 8, 9)
-    assert spec_2d.outputs[0] == TensorSpec("boxes", "float32", (30, 4))
-    assert spec_3d.outputs[0] == TensorSpec("boxes", "float32", (30, 7))
+    assert spec_2d.inputs == (TensorSpec("image", "uint8", ("batch", "height", "width", 3)),)
+    assert [(i.name, i.shape) for i in spec_3d.inputs] == [
+        ("features", ("batch", "pillars", 8, 9)),
+        ("coords", ("batch", "pillars", 2)),
+        ("num_points", ("batch", "pillars")),
+    ]
+    assert spec_2d.outputs[0] == TensorSpec("boxes", "float32", ("batch", 30, 4))
+    assert spec_3d.outputs[0] == TensorSpec("boxes", "float32", ("batch", 30, 7))
     assert spec_2d.preprocessing.in_graph and spec_2d.preprocessing.input_size == (320, 96)
     assert spec_3d.preprocessing.grid == PillarGridSpec(
         point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 1.0),

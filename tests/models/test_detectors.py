@@ -10,7 +10,7 @@ from detmatch.models.common import heatmap_peaks
 from detmatch.models.contract import forward_pillars
 from detmatch.models.detector2d import CenterNet2D
 from detmatch.models.detector3d import PointPillars3D
-from detmatch.models.pillars import PillarGrid, pillarize
+from detmatch.models.pillars import PillarGrid, batch_pillars, pillarize
 from detmatch.structures import LabeledBoxes
 from export.graphs import PillarDetector3DGraph
 from tests.conftest import REPO
@@ -98,10 +98,10 @@ def test_3d_forward_backward_and_shapes(detector_3d):
     assert all(p.grad is not None for p in detector_3d.parameters())
     with torch.no_grad():
         boxes, scores, classes, probabilities, *_ = PillarDetector3DGraph(detector_3d.eval())(
-            *(torch.from_numpy(a) for a in pillars.arrays)
+            *(torch.from_numpy(a) for a in batch_pillars([pillars]))
         )
     k = TINY.detector3d.max_detections
-    assert boxes.shape == (k, 7) and probabilities.shape == (k, NUM_CLASSES)
+    assert boxes.shape == (1, k, 7) and probabilities.shape == (1, k, NUM_CLASSES)
 
 
 def test_3d_decoding_recovers_a_box_from_hand_set_heads(detector_3d):
@@ -211,14 +211,43 @@ def test_pillarize_matches_its_contract_bit_for_bit(max_pillars):
         assert np.array_equal(mine, theirs)
 
 
+def test_a_padded_batch_of_pillars_gives_each_frame_its_own_outputs(detector_3d):
+    """batch_pillars pads a frame by repeating its last pillar and gives an empty frame one
+    zero-point pillar: through the graph every frame's heads equal its own batch of one."""
+    rng = np.random.default_rng(3)
+    clouds = [
+        np.column_stack([rng.uniform(0, 40, (n, 1)), rng.uniform(-15, 15, (n, 1)),
+                         rng.uniform(-2, 0.5, (n, 1)), rng.uniform(0, 1, (n, 1))])
+        .astype(np.float32)
+        for n in (900, 40)
+    ] + [np.zeros((0, 4), np.float32)]  # fmt: skip
+    frames = [pillarize(c, detector_3d.grid) for c in clouds]
+    features, coords, counts = batch_pillars(frames)
+    widest = max(len(f) for f in frames)
+    assert features.shape[:2] == coords.shape[:2] == counts.shape == (3, widest)
+    assert (coords[1, len(frames[1]) :] == frames[1].coords[-1]).all()
+    assert (counts[2] == 0).all() and (coords[2] == 0).all() and not features[2].any()
+    single = batch_pillars(frames[:1])
+    assert np.shares_memory(single[0], frames[0].features) and single[0].shape[0] == 1
+    graph = PillarDetector3DGraph(detector_3d.eval())
+    with torch.no_grad():
+        together = graph(*(torch.from_numpy(a) for a in (features, coords, counts)))
+        for i, frame in enumerate(frames):
+            alone = graph(*(torch.from_numpy(a) for a in batch_pillars([frame])))
+            for got, expected in zip(together[4:], alone[4:], strict=True):  # the raw heads
+                torch.testing.assert_close(got[i : i + 1], expected, atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="no frames"):
+        batch_pillars([])
+
+
 def test_3d_detector_handles_an_empty_point_cloud(detector_3d):
     pillars = pillarize(np.zeros((0, 4), dtype=np.float32), detector_3d.grid)
     assert pillars.features.shape == (0, TINY.detector3d.max_points_per_pillar, 9)
     with torch.no_grad():
         boxes, scores, *_ = PillarDetector3DGraph(detector_3d.eval())(
-            *(torch.from_numpy(a) for a in pillars.arrays)
+            *(torch.from_numpy(a[None]) for a in pillars.arrays)
         )
-    assert boxes.shape == (TINY.detector3d.max_detections, 7) and torch.isfinite(scores).all()
+    assert boxes.shape == (1, TINY.detector3d.max_detections, 7) and torch.isfinite(scores).all()
 
 
 def test_pillar_encoder_training_path_equals_the_padded_layout(detector_3d):

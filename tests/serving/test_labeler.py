@@ -14,7 +14,7 @@ from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.build import load_detectors
 from detmatch.pseudo_labels import MatchedLabels, Provenance, match_detections
 from export.parity import Tolerance, check_parity
-from serving.labeler import Labeler
+from serving.labeler import Frame, Labeler, LabelOptions
 from serving.repository import MODEL_3D_FILE, RepositoryError
 from serving.sessions import SessionSettings
 from tests.conftest import KITTI_SAMPLE, REPO
@@ -156,6 +156,54 @@ def test_malformed_inputs_raise_value_errors_naming_the_field(exported_repositor
             labeler.label(*args, **kwargs)
 
 
+def test_a_batch_gives_each_frame_the_labels_it_gets_alone(exported_repository, synth_root):
+    """Frames of several image sizes (the synthetic and the KITTI samples), one with an empty
+    point cloud and per-frame options, labeled in one `label_batch`: each frame's labels and
+    detections are those `label` gives it alone."""
+    labeler = Labeler.from_repository(exported_repository)
+    frames = [Frame(f.image, f.points, f.calib) for f in _frames(synth_root)]
+    frames[1] = Frame(frames[1].image, np.zeros((0, 4), np.float32), frames[1].calib)
+    frames[2] = Frame(frames[2].image, frames[2].points, frames[2].calib,
+                      LabelOptions(tau_hung=50.0, tau_3d_outside_view=0.1))  # fmt: skip
+    assert len({f.image.shape for f in frames}) >= 2 and len(frames) >= 4
+    batched = labeler.label_batch(frames)
+    for frame, got in zip(frames, batched, strict=True):
+        alone = labeler.label(frame.image, frame.points, frame.calib,
+                              tau_hung=frame.options.tau_hung,
+                              tau_3d_outside_view=frame.options.tau_3d_outside_view)  # fmt: skip
+        assert got.batch_size == len(frames) and alone.batch_size == 1
+        assert got.thresholds == alone.thresholds
+        assert_same_labels(got.labels, alone.labels)
+        for mine, theirs in ((got.detections_2d, alone.detections_2d),
+                             (got.detections_3d, alone.detections_3d)):  # fmt: skip
+            assert len(mine) == len(theirs)
+            np.testing.assert_allclose(np.sort(mine.scores), np.sort(theirs.scores), atol=1e-4)
+    assert len(batched[2].labels) > 0  # the permissive frame matched something
+
+
+def test_a_bad_frame_in_a_batch_fails_only_itself(exported_repository, synth_root):
+    labeler = Labeler.from_repository(exported_repository)
+    good = [Frame(f.image, f.points, f.calib) for f in _frames(synth_root)][:3]
+    nan_points = good[0].points.copy()
+    nan_points[0, 2] = np.nan
+    batch = [
+        good[0],
+        Frame(good[1].image, nan_points, good[1].calib),
+        good[1],
+        Frame(good[2].image, good[2].points, good[2].calib, LabelOptions(score_threshold_2d=2.0)),
+        good[2],
+    ]
+    results = labeler.label_batch(batch)
+    assert isinstance(results[1], ValueError) and "points: 1 points hold NaN" in str(results[1])
+    assert isinstance(results[3], ValueError) and "score_threshold_2d" in str(results[3])
+    for i, frame in ((0, good[0]), (2, good[1]), (4, good[2])):
+        assert results[i].batch_size == 3
+        alone = labeler.label(frame.image, frame.points, frame.calib)
+        assert_same_labels(results[i].labels, alone.labels)
+    only_bad = labeler.label_batch([batch[1], batch[3]])
+    assert [type(r) for r in only_bad] == [ValueError, ValueError]
+
+
 def test_a_corrupted_or_missing_version_is_refused(exported_repository, tmp_path):
     repository = tmp_path / "models"
     shutil.copytree(exported_repository, repository)
@@ -180,7 +228,7 @@ def test_the_labeler_runs_where_torch_cannot_be_imported(exported_repository, sy
         sys.modules["torch"] = None  # any `import torch` now raises ImportError
         import serving, serving.repository, serving.sessions, serving.labeler, serving.offline
         from detmatch.data.kitti import KittiDataset
-        from serving.labeler import Labeler
+        from serving.labeler import Frame, LabelOptions, Labeler
 
         frame = KittiDataset({str(KITTI_SAMPLE)!r}).load_frame("000000", with_labels=False)
         labeler = Labeler.from_repository({str(exported_repository)!r},
