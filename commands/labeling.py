@@ -141,6 +141,8 @@ def serve(args: argparse.Namespace) -> int:
     config = ServerConfig(
         address=format_address(args.host, args.port),
         workers=args.workers,
+        max_batch_size=args.max_batch_size,
+        max_queue_delay_us=args.max_queue_delay_us,
         threads=args.threads,
         max_message_bytes=args.max_message_mb * 1024 * 1024,
         max_image_pixels=args.max_image_pixels,
@@ -269,6 +271,13 @@ def _add_serve_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--threads", type=int, default=0,
                         help="onnxruntime threads per model run; 0: the CPUs this process may "
                         "use (its CPU set and its cgroup's CPU quota)")  # fmt: skip
+    parser.add_argument("--max-batch-size", type=int, default=1,
+                        help="dynamic batching: frames of concurrent calls labeled in one call "
+                        "of each graph, at most --workers; 1: off (on a 2-core CPU a batch "
+                        "makes no frame cheaper: docs/service.md)")  # fmt: skip
+    parser.add_argument("--max-queue-delay-us", type=int, default=2000,
+                        help="dynamic batching: how long a frame waits for others to join its "
+                        "batch, microseconds")  # fmt: skip
     parser.add_argument("--shard", default=socket.gethostname().split(".")[0] or "default",
                         help="this replica's label store shard (default: host name)")  # fmt: skip
     parser.add_argument("--max-message-mb", type=int, default=48,

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from serving.batching import BatchingSettings
 from serving.decode import DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_POINTS
 from serving.edge import DEFAULT_INFLIGHT_BYTES, EdgeSettings
 from serving.sessions import SessionSettings
@@ -27,6 +28,10 @@ MAX_HEADER_BYTES = 16 * 1024
 class ServerConfig:
     address: str = "127.0.0.1:0"
     workers: int = 4  # inference threads: frames decoded and labeled at once
+    # Dynamic batching (serving.batching; Triton's names): frames labeled in one pair of graph
+    # calls, 1: off; how long the oldest waits for others.
+    max_batch_size: int = 1
+    max_queue_delay_us: int = 2000
     store_threads: int = 8  # I/O threads writing frames to the label store
     threads: int = 0  # onnxruntime intra-op threads per run; 0: the CPUs this process may use
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
@@ -59,6 +64,12 @@ class ServerConfig:
                      "max_points", "max_streams_per_connection"):  # fmt: skip
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_batch_size > self.workers:
+            raise ValueError(
+                f"max_batch_size {self.max_batch_size} exceeds workers {self.workers}: each "
+                "frame waiting in a batch holds an inference thread"
+            )
+        self.batching()  # checks the batching values
         if self.threads < 0:
             raise ValueError(f"threads must be >= 0 (0: every CPU), got {self.threads}")
         if self.max_image_pixels < 1:
@@ -99,6 +110,9 @@ class ServerConfig:
             ("grpc.max_connection_age_ms", ms(self.max_connection_age_s)),
             ("grpc.max_connection_age_grace_ms", ms(self.max_connection_age_grace_s)),
         ]
+
+    def batching(self) -> BatchingSettings:
+        return BatchingSettings(self.max_batch_size, self.max_queue_delay_us)
 
     def session_settings(self) -> SessionSettings:
         return SessionSettings(intra_op_threads=self.threads)

@@ -30,6 +30,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from serving import memory
+from serving.batching import Batcher
 from serving.config import ServerConfig
 from serving.edge import EdgeInterceptor
 from serving.labeler import Labeler
@@ -153,6 +154,7 @@ async def _serve(
         extra={"fields": {"address": config.address, "auth": "bearer token" if config.token
                           else "off", "tls": config.tls_cert is not None,
                           "workers": config.workers, "onnxruntime_threads": settings.threads,
+                          "max_batch_size": config.max_batch_size,
                           "max_concurrent_rpcs": config.max_concurrent_rpcs,
                           "repository": str(repository), "store": str(store_root),
                           "shard": shard}},
@@ -162,11 +164,15 @@ async def _serve(
                     "label and store frames")  # fmt: skip
     slot = ModelSlot()
     store = LabelStore(store_root, shard)
-    service = LabelingService(slot, store, config.max_image_pixels, config.max_points)
+    batching = config.batching()
+    batcher = Batcher(batching) if batching.enabled else None
+    service = LabelingService(slot, store, config.max_image_pixels, config.max_points, batcher)
     metrics = ServiceMetrics()
     try:
         server = await LabelingServer.create(service, config, metrics)
     except BaseException:
+        if batcher is not None:
+            batcher.close()
         store.close()
         raise
     if config.metrics_port is not None:
@@ -191,6 +197,8 @@ async def _serve(
     await stopping.wait()
     await loop.run_in_executor(None, watcher.stop)
     await server.stop(config.grace_s)
+    if batcher is not None:
+        batcher.close()
     store.close()
     log.info("stopped")
 

@@ -8,6 +8,7 @@ request in flight, and every answer names the version that produced it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from detmatch.structures import Calibration
+from serving.batching import Batcher
 from serving.decode import (
     DEFAULT_MAX_IMAGE_PIXELS,
     DEFAULT_MAX_POINTS,
@@ -28,7 +30,7 @@ from serving.decode import (
     decode_raw_image,
 )
 from serving.errors import InvalidInput, ModelUnavailable
-from serving.labeler import FrameLabels, Labeler
+from serving.labeler import Frame, FrameLabels, Labeler, LabelOptions
 from serving.png import encode_png
 from serving.request import FrameRequest
 from serving.store import LabelStore, PutResult
@@ -121,11 +123,15 @@ class LabelingService:
         store: LabelStore | None,
         max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS,
         max_points: int = DEFAULT_MAX_POINTS,
+        batcher: Batcher | None = None,
     ) -> None:
+        """batcher: label concurrent calls' frames in batches (serving.batching); None: each
+        call labels its own frame."""
         self.slot = slot
         self.store = store
         self.max_image_pixels = max_image_pixels
         self.max_points = max_points
+        self.batcher = batcher
 
     def label_frame(self, request: FrameRequest) -> LabelResult:
         """Decode, label and (unless options.store is False or there is no store) store one
@@ -142,15 +148,18 @@ class LabelingService:
         decoded = time.perf_counter()
         labeler = self.slot.labeler
         options = request.options
+        overrides = LabelOptions(
+            tau_hung=options.tau_hung,
+            score_threshold_2d=options.score_threshold_2d,
+            score_threshold_3d=options.score_threshold_3d,
+        )
         try:
-            labels = labeler.label(
-                frame.pixels,
-                frame.points,
-                frame.calib,
-                tau_hung=options.tau_hung,
-                score_threshold_2d=options.score_threshold_2d,
-                score_threshold_3d=options.score_threshold_3d,
-            )
+            if self.batcher is None:
+                labels = labeler.label(frame.pixels, frame.points, frame.calib,
+                                       **dataclasses.asdict(overrides))  # fmt: skip
+            else:
+                item = Frame(frame.pixels, frame.points, frame.calib, overrides)
+                labels = self.batcher.label(labeler, item)
         except ValueError as error:
             raise InvalidInput(f"options.{error}") from None
         return LabeledFrame(

@@ -18,6 +18,7 @@ from pathlib import Path
 import grpc
 import pytest
 
+from serving.batching import Batcher
 from serving.config import ServerConfig
 from serving.health_check import wait_until_serving
 from serving.repository import promote
@@ -51,7 +52,8 @@ def running_server(
 ) -> Iterator[Running]:
     store = LabelStore(store_root, "s0")
     config = config or ServerConfig()
-    service = LabelingService(slot, store, config.max_image_pixels, config.max_points)
+    batcher = Batcher(config.batching()) if config.batching().enabled else None
+    service = LabelingService(slot, store, config.max_image_pixels, config.max_points, batcher)
     background = BackgroundServer(service, config)
     try:
         port = background.start()
@@ -62,6 +64,8 @@ def running_server(
         yield Running(port, service, store_root, background)
     finally:
         background.stop()
+        if batcher is not None:
+            batcher.close()
         store.close()
 
 
