@@ -1,7 +1,8 @@
 """Load on `detmatch serve`: throughput, latency percentiles, errors and memory at 1/2/4/8
-clients, with the label store on and off, measured in one run.
+clients, with the label store on and off (or dynamic batching off and on), measured in one run.
 
     python -m benchmarks.service_load [--clients 1 2 4 8] [--seconds 10] [--workers 2]
+                                      [--compare batching --max-batch-size 4]
                                       [--config configs/synth_cpu.toml] [--raw-image] [--int8]
 
 Two servers run side by side, one storing every frame (each request a new frame id, so
@@ -21,6 +22,7 @@ little on random weights: BENCHMARKS.md).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import tempfile
 import threading
@@ -117,6 +119,13 @@ def main() -> None:
                         "instead of --config with random weights")  # fmt: skip
     parser.add_argument("--raw-image", action="store_true", help="clients send raw pixels")
     parser.add_argument("--int8", action="store_true", help="serve an INT8 version")
+    parser.add_argument("--compare", choices=("store", "batching"), default="store",
+                        help="the two servers: the store off and on, or both storing with "
+                        "dynamic batching off and on")  # fmt: skip
+    parser.add_argument("--max-batch-size", type=int, default=4,
+                        help="the batching server's (--compare batching)")  # fmt: skip
+    parser.add_argument("--max-queue-delay-us", type=int, default=2000,
+                        help="the batching server's (--compare batching)")  # fmt: skip
     parser.add_argument("--work", help="working directory (default: a temporary one)")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
@@ -125,59 +134,69 @@ def main() -> None:
     if args.int8:
         repository = int8_repository(work, repository)
     server_args = ("--workers", str(args.workers), "--threads", str(args.threads))
+    batching = ("--max-batch-size", str(args.max_batch_size),
+                "--max-queue-delay-us", str(args.max_queue_delay_us))  # fmt: skip
+    # Two servers, measured in alternating rounds: (mode, whether its calls store, its flags);
+    # the first is the baseline of the ratio.
+    if args.compare == "store":
+        modes = [("off", False, server_args), ("on", True, server_args)]
+    else:
+        modes = [("single", True, server_args), ("batched", True, server_args + batching)]
     rows = []
     run = time.strftime("%Y%m%d-%H%M%S")  # a fresh store: every stored call creates a frame
-    with (
-        serve(repository, work / f"store_on_{run}", *server_args) as stored,
-        serve(repository, work / f"store_off_{run}", *server_args) as unstored,
-    ):
-        samplers = {"on": RssSampler(stored.pid), "off": RssSampler(unstored.pid)}
-        for sampler in samplers.values():
-            sampler.__enter__()
-        for mode, server in (("on", stored), ("off", unstored)):  # warm up: first calls
-            run_clients(server.target, 1, 2.0, mode == "on", "warm", args.raw_image)
+    with contextlib.ExitStack() as stack:
+        servers = {mode: stack.enter_context(serve(repository, work / f"store_{mode}_{run}",
+                                                   *flags))
+                   for mode, _, flags in modes}  # fmt: skip
+        stores = {mode: stores for mode, stores, _ in modes}
+        samplers = {mode: stack.enter_context(RssSampler(server.pid))
+                    for mode, server in servers.items()}  # fmt: skip
+        for mode, server in servers.items():  # warm up: first calls
+            run_clients(server.target, 1, 2.0, stores[mode], "warm", args.raw_image)
         for clients in args.clients:
-            parts: dict[str, list] = {"off": [], "on": []}
-            rss_before = {"off": unstored.rss_mib(), "on": stored.rss_mib()}
+            parts: dict[str, list] = {mode: [] for mode in servers}
+            rss_before = {mode: server.rss_mib() for mode, server in servers.items()}
             for round_ in range(args.rounds):  # interleaved: both modes see the same machine
-                for mode, server in (("off", unstored), ("on", stored)):
+                for mode, server in servers.items():
                     cpu_before = cpu_seconds(server.pid)
                     figures = run_clients(server.target, clients, args.seconds / args.rounds,
-                                          mode == "on", f"n{clients}r{round_}",
+                                          stores[mode], f"n{clients}r{round_}",
                                           args.raw_image)  # fmt: skip
                     figures["cpu_s"] = cpu_seconds(server.pid) - cpu_before
                     parts[mode].append(figures)
-            for mode, server in (("off", unstored), ("on", stored)):
-                rows.append({"store": mode, **merge(parts[mode]),
+            for mode, server in servers.items():
+                rows.append({"mode": mode, **merge(parts[mode]),
                              "rss_before_mib": rss_before[mode],
                              "rss_after_mib": server.rss_mib()})  # fmt: skip
-        for sampler in samplers.values():
-            sampler.__exit__(None, None, None)
-    log = stored.log()  # the store's commit counts are logged when it closes
+    log = servers[modes[-1][0]].log()  # the store's commit counts are logged when it closes
     model = args.checkpoint or args.config
     print(f"model {model}{' (INT8)' if args.int8 else ''}, --workers {args.workers} "
           f"--threads {args.threads}, "
           f"{args.seconds:.0f} s per row; clients send the 3 KITTI sample frames "
           f"({'raw pixels' if args.raw_image else 'PNG'})")  # fmt: skip
-    print("\n| store | clients | frames/s | p50 ms | p95 ms | p99 ms | failed | server CPU ms "
+    if args.compare == "batching":
+        print(f"both servers store every frame; 'batched': {' '.join(batching)}")
+    column = "store" if args.compare == "store" else "batching"
+    print(f"\n| {column} | clients | frames/s | p50 ms | p95 ms | p99 ms | failed | server CPU ms "
           "per frame | RSS MiB before / after |")  # fmt: skip
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for row in rows:
-        print(f"| {row['store']} | {row['clients']} | {row['frames_per_s']:.1f} | "
+        print(f"| {row['mode']} | {row['clients']} | {row['frames_per_s']:.1f} | "
               f"{row['p50_ms']:.0f} | {row['p95_ms']:.0f} | {row['p99_ms']:.0f} | "
               f"{len(row['failed'])} | {row['server_cpu_ms_per_frame']:.1f} | "
               f"{row['rss_before_mib']:.0f} / {row['rss_after_mib']:.0f} |")  # fmt: skip
-    print("\n| clients | store on / store off throughput |")
+    (base, _, _), (other, _, _) = modes
+    print(f"\n| clients | {column} {other} / {base} throughput |")
     print("| ---: | ---: |")
     ratios = {}
     for clients in args.clients:
-        on = next(r for r in rows if r["clients"] == clients and r["store"] == "on")
-        off = next(r for r in rows if r["clients"] == clients and r["store"] == "off")
-        ratios[clients] = on["frames_per_s"] / off["frames_per_s"]
+        first, second = (next(r for r in rows if r["clients"] == clients and r["mode"] == m)
+                         for m in (base, other))  # fmt: skip
+        ratios[clients] = second["frames_per_s"] / first["frames_per_s"]
         print(f"| {clients} | {ratios[clients]:.2f} |")
     for mode, sampler in samplers.items():
         samples = sampler.samples
-        print(f"RSS of the store-{mode} server over the run: first {samples[0][1]:.0f} MiB, "
+        print(f"RSS of the {mode} server over the run: first {samples[0][1]:.0f} MiB, "
               f"peak {sampler.peak:.0f} MiB, last {samples[-1][1]:.0f} MiB "
               f"({len(samples)} samples over {samples[-1][0]:.0f} s)")  # fmt: skip
     closed = [json.loads(line) for line in log.splitlines() if '"label store closed"' in line]
@@ -195,7 +214,10 @@ def main() -> None:
             "--config", args.config,
             *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
             *(["--raw-image"] if args.raw_image else []),
-            *(["--int8"] if args.int8 else [])]  # fmt: skip
+            *(["--int8"] if args.int8 else []),
+            *(["--compare", "batching", "--max-batch-size",
+               str(args.max_batch_size), "--max-queue-delay-us", str(args.max_queue_delay_us)]
+              if args.compare == "batching" else [])]  # fmt: skip
     print(f"\nrerun: {rerun('service_load', argv)}")
 
 
