@@ -219,6 +219,46 @@ def test_a_corrupted_or_missing_version_is_refused(exported_repository, tmp_path
         Labeler.from_repository(repository)
 
 
+def test_a_version_exported_before_the_batch_axis_is_refused_with_the_fix(
+    exported_repository, tmp_path
+):
+    """A 2D graph of the old contract (one (H, W, 3) image, no batch axis): the labeler names
+    the command that exports the version's checkpoint again."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    outputs = [
+        ("boxes", TensorProto.FLOAT, [30, 4]),
+        ("scores", TensorProto.FLOAT, [30]),
+        ("classes", TensorProto.INT64, [30]),
+        ("probabilities", TensorProto.FLOAT, [30, 3]),
+    ]
+    graph = helper.make_graph(
+        [
+            helper.make_node(
+                "Constant",
+                [],
+                [name],
+                value=helper.make_tensor(
+                    name + "_value", dtype, shape, np.zeros(shape).ravel().tolist()
+                ),
+            )
+            for name, dtype, shape in outputs
+        ],  # fmt: skip
+        "legacy",
+        [helper.make_tensor_value_info("image", TensorProto.UINT8, ["height", "width", 3])],
+        [helper.make_tensor_value_info(name, dtype, shape) for name, dtype, shape in outputs],
+    )
+    version = tmp_path / "models" / "000001"
+    shutil.copytree(exported_repository / "000001", version)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(version / "detector2d.onnx"))
+    with pytest.raises(RepositoryError, match="without a leading batch axis") as refused:
+        Labeler(version, check_files=False)
+    assert f"--checkpoint {version / 'checkpoint.pt'}" in str(refused.value)
+
+
 def test_the_labeler_runs_where_torch_cannot_be_imported(exported_repository, synth_root, tmp_path):
     """serving imports no torch anywhere on its import path: a process where `import torch`
     fails loads the served version, labels a real KITTI frame and runs `detmatch label`."""
