@@ -273,6 +273,8 @@ class Backend:
                 continue
             score = float(detections.scores[index])
             box = np.clip(detections.boxes[index], 0, [width, height, width, height])
+            if box[2] <= box[0] or box[3] <= box[1]:
+                continue  # wholly beyond the image's edge: no region to draw
             results.append(rectangle_result(f"p{index}", box.tolist(), name, score,
                                             (width, height), from_name=interface.from_name,
                                             to_name=interface.to_name))  # fmt: skip
