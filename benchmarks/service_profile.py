@@ -5,8 +5,8 @@ resolution) one call after another, as PNG files and as raw pixels (raw_image).
     python -m benchmarks.service_profile [--seconds 20] [--config configs/synth_cpu.toml]
         [--images png raw]
 
-Every sampled stack of an active server thread (threads waiting on a queue, a condition or
-epoll are left out) is put in the first stage (in the order of STAGES) whose marker its
+Every sampled stack of an active server thread (threads waiting on a queue, a condition,
+epoll or the disk are left out) is put in the first stage (in the order of STAGES) whose marker its
 frames hold; a stage's milliseconds per frame are its share of the samples times the
 server's CPU time per frame (/proc: user + system), so time spent waiting for a core that
 another process holds does not count. "graphs" (the 2D and 3D onnxruntime runs) is what the
@@ -53,11 +53,17 @@ GRAPHS = ("graph 2D", "graph 3D")
 IDLE_LEAVES = ("_worker (concurrent/futures/thread.py", "EpollSelector.select", "Condition.wait",
                "Event.wait", "LabelStore._commit_loop (serving/store.py",
                "Thread.run (threading.py", "Thread._bootstrap_inner")  # fmt: skip
+# Leaf frames of the store's threads waiting on the disk: an fsync, the renames after it and
+# SQLite's commit (its own fsync) put the thread in uninterruptible sleep, which py-spy samples
+# as active. They wait, they do not compute: counted as CPU they would take a share of the
+# server's CPU time that the disk, not the processor, spent.
+DISK_WAIT_LEAVES = ("fsync_path (detmatch/files.py", "LabelStore._commit_batch (serving/store.py",
+                    "transaction (serving/store_layout.py")  # fmt: skip
 
 
 def stage_of(stack: str) -> str | None:
     """The stage of one sampled stack (frames root first, ';'-joined); None for a wait."""
-    if stack.rsplit(";", 1)[-1].startswith(IDLE_LEAVES):
+    if stack.rsplit(";", 1)[-1].startswith(IDLE_LEAVES + DISK_WAIT_LEAVES):
         return None
     for name, markers, also in STAGES:
         if any(m in stack for m in markers) and all(a in stack for a in also):
