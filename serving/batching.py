@@ -61,6 +61,11 @@ class BatchStats:
     sizes: dict[int, int] = field(default_factory=dict)  # batch size -> batches of that size
 
 
+def batcher_for(settings: BatchingSettings) -> Batcher | None:
+    """The batcher the settings ask for; None when batching is off."""
+    return Batcher(settings) if settings.enabled else None
+
+
 class Batcher:
     """The queue and the thread that labels its batches. `label` blocks its caller until its
     frame's batch has run; `close` labels what is queued, then stops the thread."""

@@ -43,9 +43,9 @@ from serving.sessions import SessionSettings, make_session
 
 
 @dataclass(frozen=True)
-class LabelOptions:
-    """A frame's overrides of the manifest's thresholds (see `Labeler.label`); None: the
-    manifest's."""
+class Overrides:
+    """A frame's overrides of the manifest's thresholds, all that `Labeler.label` takes (the
+    wire's `serving.request.LabelOptions` carries three of them); None: the manifest's."""
 
     tau_hung: float | None = None
     score_threshold_2d: float | None = None
@@ -63,7 +63,7 @@ class Frame:
     image: np.ndarray
     points: np.ndarray
     calib: Calibration
-    options: LabelOptions = LabelOptions()
+    options: Overrides = Overrides()
 
 
 @dataclass(frozen=True)
@@ -235,7 +235,7 @@ class Labeler:
         outside the view). Raises ValueError naming the input and the problem for malformed
         inputs.
         """
-        options = LabelOptions(
+        options = Overrides(
             tau_hung, score_threshold_2d, score_threshold_3d, tau_3d_outside_view,
             outside_view_fallback, tau_3d_unmatched,
         )  # fmt: skip
@@ -305,7 +305,7 @@ class Labeler:
             timings[i]["total"] = end - start
         return results
 
-    def _thresholds(self, options: LabelOptions) -> tuple[MatchingPolicy, float, float]:
+    def _thresholds(self, options: Overrides) -> tuple[MatchingPolicy, float, float]:
         """The matching policy and both score thresholds a frame's options give (ValueError
         naming the option for a bad value)."""
         policy = self.policy.with_overrides(

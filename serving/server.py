@@ -30,7 +30,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from serving import memory
-from serving.batching import Batcher
+from serving.batching import batcher_for
 from serving.config import ServerConfig
 from serving.edge import EdgeInterceptor
 from serving.labeler import Labeler
@@ -164,8 +164,7 @@ async def _serve(
                     "label and store frames")  # fmt: skip
     slot = ModelSlot()
     store = LabelStore(store_root, shard)
-    batching = config.batching()
-    batcher = Batcher(batching) if batching.enabled else None
+    batcher = batcher_for(config.batching())
     service = LabelingService(slot, store, config.max_image_pixels, config.max_points, batcher)
     metrics = ServiceMetrics()
     try:

@@ -30,7 +30,7 @@ from serving.decode import (
     decode_raw_image,
 )
 from serving.errors import InvalidInput, ModelUnavailable
-from serving.labeler import Frame, FrameLabels, Labeler, LabelOptions
+from serving.labeler import Frame, FrameLabels, Labeler, Overrides
 from serving.png import encode_png
 from serving.request import FrameRequest
 from serving.store import LabelStore, PutResult
@@ -148,7 +148,7 @@ class LabelingService:
         decoded = time.perf_counter()
         labeler = self.slot.labeler
         options = request.options
-        overrides = LabelOptions(
+        overrides = Overrides(
             tau_hung=options.tau_hung,
             score_threshold_2d=options.score_threshold_2d,
             score_threshold_3d=options.score_threshold_3d,

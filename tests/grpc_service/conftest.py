@@ -18,7 +18,7 @@ from pathlib import Path
 import grpc
 import pytest
 
-from serving.batching import Batcher
+from serving.batching import batcher_for
 from serving.config import ServerConfig
 from serving.health_check import wait_until_serving
 from serving.repository import promote
@@ -52,7 +52,7 @@ def running_server(
 ) -> Iterator[Running]:
     store = LabelStore(store_root, "s0")
     config = config or ServerConfig()
-    batcher = Batcher(config.batching()) if config.batching().enabled else None
+    batcher = batcher_for(config.batching())
     service = LabelingService(slot, store, config.max_image_pixels, config.max_points, batcher)
     background = BackgroundServer(service, config)
     try:

@@ -14,7 +14,7 @@ from detmatch.matching_policy import MatchingPolicy
 from detmatch.models.build import load_detectors
 from detmatch.pseudo_labels import MatchedLabels, Provenance, match_detections
 from export.parity import Tolerance, check_parity
-from serving.labeler import Frame, Labeler, LabelOptions
+from serving.labeler import Frame, Labeler, Overrides
 from serving.repository import MODEL_3D_FILE, RepositoryError
 from serving.sessions import SessionSettings
 from tests.conftest import KITTI_SAMPLE, REPO
@@ -164,7 +164,7 @@ def test_a_batch_gives_each_frame_the_labels_it_gets_alone(exported_repository, 
     frames = [Frame(f.image, f.points, f.calib) for f in _frames(synth_root)]
     frames[1] = Frame(frames[1].image, np.zeros((0, 4), np.float32), frames[1].calib)
     frames[2] = Frame(frames[2].image, frames[2].points, frames[2].calib,
-                      LabelOptions(tau_hung=50.0, tau_3d_outside_view=0.1))  # fmt: skip
+                      Overrides(tau_hung=50.0, tau_3d_outside_view=0.1))  # fmt: skip
     assert len({f.image.shape for f in frames}) >= 2 and len(frames) >= 4
     batched = labeler.label_batch(frames)
     for frame, got in zip(frames, batched, strict=True):
@@ -190,7 +190,7 @@ def test_a_bad_frame_in_a_batch_fails_only_itself(exported_repository, synth_roo
         good[0],
         Frame(good[1].image, nan_points, good[1].calib),
         good[1],
-        Frame(good[2].image, good[2].points, good[2].calib, LabelOptions(score_threshold_2d=2.0)),
+        Frame(good[2].image, good[2].points, good[2].calib, Overrides(score_threshold_2d=2.0)),
         good[2],
     ]
     results = labeler.label_batch(batch)
@@ -268,7 +268,7 @@ def test_the_labeler_runs_where_torch_cannot_be_imported(exported_repository, sy
         sys.modules["torch"] = None  # any `import torch` now raises ImportError
         import serving, serving.repository, serving.sessions, serving.labeler, serving.offline
         from detmatch.data.kitti import KittiDataset
-        from serving.labeler import Frame, LabelOptions, Labeler
+        from serving.labeler import Labeler
 
         frame = KittiDataset({str(KITTI_SAMPLE)!r}).load_frame("000000", with_labels=False)
         labeler = Labeler.from_repository({str(exported_repository)!r},
