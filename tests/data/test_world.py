@@ -1,6 +1,6 @@
-"""World versions: recorded in the data set and read back, v1 unchanged, v2 deterministic, its
-people-shaped clutter seen by both sensors and never labelled; the camera stand-in's set
-shares no scene with the benchmark's."""
+"""World versions: recorded in the data set and read back, v1 and v3 unchanged, v2 and v4
+deterministic, their people- and rider-shaped clutter seen by both sensors and never labelled;
+the camera stand-in's set shares no scene with the benchmark's."""
 
 from __future__ import annotations
 
@@ -74,16 +74,37 @@ def test_v2_is_deterministic_per_seed_and_differs_from_v1() -> None:
     assert lo <= len(clutter) < hi
 
 
-def _new_clutter_in_view() -> list[tuple]:
-    """(frame, object index, kind) of v2's new clutter kinds 4-40 m ahead, in the image."""
+def test_v3_frames_are_those_the_calibration_runs_c2_to_c4_used() -> None:
+    # Reference values of generator seed 7, frame 2 (three pedestrians, a cyclist), from the
+    # code before world v4 existed: v4's people walking bicycles draw nothing in v3.
+    frame = generate_frame(7, 2, world="v3").frame
+    names = list(frame.labels.names)
+    assert names == ["Car"] * 6 + ["Van"] + ["Pedestrian"] * 3 + ["Cyclist"] + ["DontCare"] * 2
+    boxes = frame.labels.boxes_3d.data
+    np.testing.assert_allclose(
+        boxes[[7, 10]],
+        [
+            [5.6099, -4.5675, -0.8257, 0.4174, 0.67, 1.8086, -2.698],
+            [42.7944, -1.9013, -0.8843, 1.7574, 0.6241, 1.6914, 0.0435],
+        ],
+        atol=2e-4,
+    )
+    assert abs(len(frame.points) - 113615) <= 100
+    assert frame.image.mean() == pytest.approx(76.0650, abs=0.05)
+    assert frame.points[:, 3].mean() == pytest.approx(0.23597, abs=0.002)
+
+
+def _new_clutter_in_view(world: str, kinds: tuple[str, ...], seed: int = 11) -> list[tuple]:
+    """(frame, object index, kind) of a world's clutter of the given kinds 4-40 m ahead, in
+    the image."""
     found = []
     camera = make_camera("half")
     for index in range(8):
-        synth = generate_frame(11, index, world="v2")
+        synth = generate_frame(seed, index, world=world)
         for i, thing in enumerate(synth.scene.objects):
             (u, v), depth = camera.project(thing.box[:3])
             in_image = 0 <= u < camera.width and 0 <= v < camera.height
-            if thing.kind in NEW_KINDS and 4.0 < depth < 40.0 and in_image:
+            if thing.kind in kinds and 4.0 < depth < 40.0 and in_image:
                 found.append((synth, i, thing.kind))
     return found
 
@@ -95,10 +116,15 @@ def _without(scene: Scene, index: int) -> Scene:
     return replace(scene, primitives=prims)
 
 
-def test_new_clutter_shows_in_both_sensors_and_is_never_labelled() -> None:
-    found = _new_clutter_in_view()
-    assert {kind for _, _, kind in found} == set(NEW_KINDS)
-    seen = {kind: [] for kind in NEW_KINDS}  # (LiDAR points, synth, index); many stand behind cars
+@pytest.mark.parametrize(
+    ("world", "kinds"), [("v2", NEW_KINDS), ("v4", ("clutter/walked_bicycle",))]
+)
+def test_new_clutter_shows_in_both_sensors_and_is_never_labelled(
+    world: str, kinds: tuple[str, ...]
+) -> None:
+    found = _new_clutter_in_view(world, kinds)
+    assert {kind for _, _, kind in found} == set(kinds)
+    seen = {kind: [] for kind in kinds}  # (LiDAR points, synth, index); many stand behind cars
     for synth, i, kind in found:
         box = synth.scene.objects[i].box
         points = int(points_in_boxes(synth.frame.points[:, :3], box[None]).sum())
@@ -143,6 +169,33 @@ def test_the_crowded_world_has_more_people_and_cyclists_and_is_v3_otherwise() ->
     crowd, v3 = WORLDS["v3-crowd"], WORLDS["v3"]
     assert replace(crowd, name="v3", pedestrian_groups=v3.pedestrian_groups,
                    cyclists=v3.cyclists) == v3  # fmt: skip
+
+
+def test_v4_is_v3_with_people_walking_bicycles_each_a_labelled_pedestrian_at_its_side() -> None:
+    assert replace(WORLDS["v4"], name="v3", walked_bicycles=(0, 0)) == WORLDS["v3"]
+    a, b = generate_frame(5, 2, world="v4"), generate_frame(5, 2, world="v4")
+    assert np.array_equal(a.frame.image, b.frame.image)
+    assert np.array_equal(a.frame.points, b.frame.points)
+    assert not np.array_equal(a.frame.image, generate_frame(5, 2, world="v3").frame.image)
+
+    bicycles, pedestrians = 0, 0
+    for index in range(6):
+        scene = sample_scene(17, index, WORLDS["v4"])
+        people = [o.box for o in scene.objects if o.kind == "Pedestrian"]
+        pedestrians += len(people)
+        for thing in scene.objects:
+            if thing.kind != "clutter/walked_bicycle":
+                continue
+            bicycles += 1
+            # A cyclist's size, and a person beside it, heading the same way, within reach.
+            assert 1.5 < thing.box[3] < 2.0 and thing.box[5] < 1.3
+            gaps = [np.hypot(*(p[:2] - thing.box[:2])) for p in people]
+            person = people[int(np.argmin(gaps))]
+            assert min(gaps) < 1.0
+            assert abs(np.cos(person[6] - thing.box[6])) > 0.99
+    lo, hi = WORLDS["v4"].walked_bicycles
+    assert 6 * lo <= bicycles < 6 * hi
+    assert bicycles < pedestrians
 
 
 def test_the_camera_stand_in_set_shares_no_seed_or_scene_with_the_benchmark(

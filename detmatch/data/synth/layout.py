@@ -1,5 +1,6 @@
 """Sampling a road scene: road, lighting, parked rows, traffic, pedestrians, cyclists, people
-walking bicycles (world v4), clutter and roadside background, each placed only where its footprint is free.
+walking bicycles (world v4), clutter and roadside background, each placed only where its
+footprint is free.
 
 Distances: road users from about 30 m behind to 85 m ahead (the LiDAR sees all around, the
 camera ahead); background from 45 m behind to 200 m ahead.
