@@ -157,18 +157,22 @@ def test_people_lose_more_returns_in_v2_and_more_again_in_v3() -> None:
     assert v3 < 0.95 * v2 < 0.95 * 0.95 * v1
 
 
-def test_the_crowded_world_has_more_people_and_cyclists_and_is_v3_otherwise() -> None:
-    def count(world: str, kind: str) -> int:
+@pytest.mark.parametrize("world", ["v3", "v4"])
+def test_the_crowded_world_has_more_people_and_cyclists_and_is_its_world_otherwise(
+    world: str,
+) -> None:
+    def count(name: str, kind: str) -> int:
         return sum(
-            sum(o.kind == kind for o in sample_scene(21, i, WORLDS[world]).objects)
-            for i in range(6)
+            sum(o.kind == kind for o in sample_scene(21, i, WORLDS[name]).objects) for i in range(6)
         )
 
-    for kind in ("Pedestrian", "Cyclist"):
-        assert count("v3-crowd", kind) > 2 * count("v3", kind), kind
-    crowd, v3 = WORLDS["v3-crowd"], WORLDS["v3"]
-    assert replace(crowd, name="v3", pedestrian_groups=v3.pedestrian_groups,
-                   cyclists=v3.cyclists) == v3  # fmt: skip
+    kinds = ("Pedestrian", "Cyclist") + (("clutter/walked_bicycle",) if world == "v4" else ())
+    for kind in kinds:
+        assert count(f"{world}-crowd", kind) > 2 * count(world, kind), kind
+    crowd, base = WORLDS[f"{world}-crowd"], WORLDS[world]
+    counts = {key: getattr(base, key) for key in ("pedestrian_groups", "cyclists",
+                                                  "walked_bicycles")}  # fmt: skip
+    assert replace(crowd, name=world, **counts) == base
 
 
 def test_v4_is_v3_with_people_walking_bicycles_each_a_labelled_pedestrian_at_its_side() -> None:

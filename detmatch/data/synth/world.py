@@ -73,6 +73,10 @@ WORLDS["v3-crowd"] = replace(WORLDS["v3"], name="v3-crowd", pedestrian_groups=(4
 # edges where cyclists ride: a LiDAR confuser for cyclists (issue 41), as parked bicycles and
 # posts are for pedestrians.
 WORLDS["v4"] = replace(WORLDS["v3"], name="v4", walked_bicycles=(1, 3))
+# The stand-in's world for v4: crowded like v3-crowd, with as many people walking a bicycle
+# as riding one (COCO has both). Never a benchmark world.
+WORLDS["v4-crowd"] = replace(WORLDS["v4"], name="v4-crowd", pedestrian_groups=(4, 12),
+                             cyclists=(2, 7), walked_bicycles=(2, 7))  # fmt: skip
 DEFAULT_WORLD = "v1"
 
 
