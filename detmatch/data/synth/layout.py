@@ -1,6 +1,5 @@
-"""Sampling a road scene: road, lighting, parked rows, traffic, pedestrians, cyclists, people
-walking bicycles (world v4), clutter and roadside background, each placed only where its
-footprint is free.
+"""Sampling a road scene: road, lighting, parked rows, traffic, pedestrians, cyclists, clutter
+and roadside background, each placed only where its footprint is free.
 
 Distances: road users from about 30 m behind to 85 m ahead (the LiDAR sees all around, the
 camera ahead); background from 45 m behind to 200 m ahead.
@@ -175,27 +174,6 @@ def place_parked_rows(placer: Placer) -> None:
                 s += rng.uniform(4.0, 9.0)
 
 
-def _walkway(rng: np.random.Generator, road: RoadLayout, side: int) -> float:
-    """u where people walk on one side: across the sidewalk, or on the verge where there is
-    none."""
-    edge, outer = _edges(road, side)
-    if outer == edge + side * CURB:
-        return float(edge + side * rng.uniform(0.8, 2.5))
-    return float(rng.uniform(min(edge, outer), max(edge, outer)))
-
-
-def _cycle_lane(rng: np.random.Generator, road: RoadLayout) -> tuple[float, float]:
-    """(u, heading) at a lane edge where cyclists ride, with the traffic: the right edge half
-    the time, the left 30 %, else the middle of the right sidewalk."""
-    choice = rng.random()
-    if choice < 0.5:
-        return road.lanes_right + rng.uniform(0.5, 0.9), 0.0
-    if choice < 0.8:
-        return road.lanes_left - rng.uniform(0.5, 0.9), np.pi
-    edge, outer = _edges(road, -1)
-    return (edge + outer) / 2, rng.choice([0.0, np.pi])
-
-
 def place_road_users(placer: Placer, world: World) -> None:
     """Traffic in the lanes (mostly along the road, some turning), pedestrians on the
     sidewalks (alone or in groups, some crossing), cyclists at the lane edges."""
@@ -221,7 +199,12 @@ def place_road_users(placer: Placer, world: World) -> None:
             )
 
     for _ in range(int(rng.integers(*world.pedestrian_groups))):
-        u0 = _walkway(rng, road, int(rng.choice([-1, 1])))
+        side = int(rng.choice([-1, 1]))
+        edge, outer = _edges(road, side)
+        if outer == edge + side * CURB:
+            u0 = edge + side * rng.uniform(0.8, 2.5)
+        else:
+            u0 = rng.uniform(min(edge, outer), max(edge, outer))
         s0 = rng.uniform(-12.0, 60.0)
         yaw0 = (
             rng.uniform(-np.pi, np.pi)
@@ -244,7 +227,14 @@ def place_road_users(placer: Placer, world: World) -> None:
         placer.place("Pedestrian", placer.road_user("Pedestrian"), s, u, yaw, 0.1)
 
     for _ in range(int(rng.integers(*world.cyclists))):
-        u, yaw = _cycle_lane(rng, road)
+        choice = rng.random()
+        if choice < 0.5:
+            u, yaw = road.lanes_right + rng.uniform(0.5, 0.9), 0.0
+        elif choice < 0.8:
+            u, yaw = road.lanes_left - rng.uniform(0.5, 0.9), np.pi
+        else:
+            edge, outer = _edges(road, -1)
+            u, yaw = (edge + outer) / 2, rng.choice([0.0, np.pi])
         placer.place(
             "Cyclist",
             placer.road_user("Cyclist"),
@@ -253,45 +243,6 @@ def place_road_users(placer: Placer, world: World) -> None:
             yaw + rng.normal(0, 0.08),
             0.25,
         )
-
-
-def place_walked_bicycles(placer: Placer, world: World) -> None:
-    """People walking a bicycle beside them (world v4): the person a labelled Pedestrian, the
-    bicycle unlabelled clutter at their side, a hand's reach from them; on the sidewalks, or
-    where cyclists ride (40 %). Draws nothing from the scene's stream in worlds without them,
-    so earlier worlds stay bit-identical."""
-    if world.walked_bicycles[1] == 0:
-        return
-    rng, road = placer.rng, placer.road
-    for _ in range(int(rng.integers(*world.walked_bicycles))):
-        if rng.random() < 0.4:
-            u, heading = _cycle_lane(rng, road)
-        else:
-            u, heading = _walkway(rng, road, int(rng.choice([-1, 1]))), rng.choice([0.0, np.pi])
-        s, yaw = rng.uniform(-10.0, 60.0), heading + rng.normal(0, 0.1)
-        person = placer.road_user("Pedestrian")
-        if not placer.place("Pedestrian", person, s, u, yaw, 0.08):
-            continue
-        bicycle = scenery.build_walked_bicycle(rng, placer.owner)
-        # Beside the person (either side), its handlebar about level with them; the two
-        # boxes touch but do not meet.
-        lateral = float(rng.choice([-1.0, 1.0])) * (
-            _width(person) / 2 + _width(bicycle) / 2 + rng.uniform(0.02, 0.08)
-        )
-        forward = rng.uniform(-0.1, 0.3)
-        placer.place(
-            "clutter/walked_bicycle",
-            bicycle,
-            s + forward * np.cos(yaw) - lateral * np.sin(yaw),
-            u + forward * np.sin(yaw) + lateral * np.cos(yaw),
-            yaw,
-            margin=0.0,
-        )
-
-
-def _width(prims: Primitives) -> float:
-    low, high = shapes.local_extent(prims)
-    return float(high[1] - low[1])
 
 
 def place_clutter(placer: Placer, world: World) -> None:
@@ -390,7 +341,6 @@ def sample_scene(seed: int, frame_index: int, world: World = WORLDS[DEFAULT_WORL
     placer = Placer(rng, road)
     place_parked_rows(placer)
     place_road_users(placer, world)
-    place_walked_bicycles(placer, world)
     place_clutter(placer, world)
     place_background(placer)
     return placer.scene(lighting, int(rng.integers(2**31)))

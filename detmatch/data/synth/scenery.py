@@ -5,8 +5,7 @@ posts and tree trunks of a person's width (0.3-0.8 m) and height (1.2-2.2 m), re
 clothing, but grey, brown or green and without head, skin or clothing in the image. World v2
 adds things whose point signature is a person's or a cyclist's: pay stations (a narrow
 pedestal, a wider body, a rounded top: legs, torso and head to a 64-beam sensor), shrubs of a
-person's size, and parked bicycles without riders, one to three side by side. World v4 adds
-bicycles that people walk (layout.place_walked_bicycles): a rider's shape to the LiDAR.
+person's size, and parked bicycles without riders, one to three side by side.
 """
 
 from __future__ import annotations
@@ -106,14 +105,6 @@ def build_clutter(rng: np.random.Generator, kind: str, owner: int) -> Primitives
             build_bicycle(builder, rng, length, width, (i - (count - 1) / 2) * spacing)
     else:
         raise ValueError(f"unknown clutter kind {kind!r}; expected one of {CLUTTER_KINDS}")
-    return builder.build(owner)
-
-
-def build_walked_bicycle(rng: np.random.Generator, owner: int) -> Primitives:
-    """One bicycle without a rider, of a cyclist's length and width, for a person walking it
-    (world v4)."""
-    builder = ShapeBuilder()
-    build_bicycle(builder, rng, rng.uniform(1.6, 1.85), rng.uniform(0.5, 0.65))
     return builder.build(owner)
 
 

@@ -30,10 +30,7 @@ class World:
     lidar_reflectivity / lidar_dropout: per material, overrides of materials.py's base
     reflectivity and additions to its extra dropout.
     pedestrian_groups / cyclists: [low, high) groups of pedestrians on the sidewalks and
-    cyclists per scene.
-    walked_bicycles: [low, high) people per scene walking a bicycle beside them (labelled
-    Pedestrian; the bicycle is unlabelled clutter): to the LiDAR a rider's shape, to the
-    camera a person on their own feet beside a riderless bicycle."""
+    cyclists per scene."""
 
     name: str
     clutter_kinds: tuple[str, ...] = V1_CLUTTER
@@ -43,7 +40,6 @@ class World:
     lidar_dropout: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     pedestrian_groups: tuple[int, int] = (1, 6)
     cyclists: tuple[int, int] = (0, 3)
-    walked_bicycles: tuple[int, int] = (0, 0)
 
 
 WORLDS = {
@@ -69,14 +65,6 @@ WORLDS["v3"] = replace(
 # world.
 WORLDS["v3-crowd"] = replace(WORLDS["v3"], name="v3-crowd", pedestrian_groups=(4, 12),
                              cyclists=(2, 7))  # fmt: skip
-# v4: v3 with one to two people a scene walking a bicycle, on the sidewalks and at the lane
-# edges where cyclists ride: a LiDAR confuser for cyclists (issue 41), as parked bicycles and
-# posts are for pedestrians.
-WORLDS["v4"] = replace(WORLDS["v3"], name="v4", walked_bicycles=(1, 3))
-# The stand-in's world for v4: crowded like v3-crowd, with as many people walking a bicycle
-# as riding one (COCO has both). Never a benchmark world.
-WORLDS["v4-crowd"] = replace(WORLDS["v4"], name="v4-crowd", pedestrian_groups=(4, 12),
-                             cyclists=(2, 7), walked_bicycles=(2, 7))  # fmt: skip
 DEFAULT_WORLD = "v1"
 
 
