@@ -25,7 +25,7 @@ from serving.store import (
     export_store,
     list_frames,
 )
-from serving.store_layout import frame_paths
+from serving.store_layout import frame_paths, sha256
 from tests.conftest import KITTI_SAMPLE
 from tests.serving.store_helpers import (
     labels_of,
@@ -121,8 +121,11 @@ def test_shards_and_namespaces_are_exported_with_train_and_val_sets(
     source = KittiDataset(KITTI_SAMPLE).load_frame("000002", with_labels=False)
     np.testing.assert_array_equal(exported.points, source.points)
     np.testing.assert_allclose(exported.calib.P2, source.calib.P2)
-    objects = read_objects(out / "training" / "label_2" / "default__f01.txt")
-    assert len(objects) == winner.num_labels > 0 and objects.score is not None
+    rows = out / "training" / "label_2" / "default__f01.txt"
+    objects = read_objects(rows)
+    # The winner's rows, byte for byte: its labels whose 3D centre projects into the image.
+    assert sha256(rows.read_bytes()) == winner.files[frame_paths("default", "f01")["label_2"]]
+    assert 0 < len(objects) <= winner.num_labels and objects.score is not None
     assert (out / "labels" / "default__f01.json").is_file()
     again = tmp_path / "again"
     export_store(tmp_path / "store", again, val_fraction=0.25)
