@@ -364,6 +364,13 @@ def rectangle_result(
     return result
 
 
+def drawable(box) -> bool:
+    """Whether a 2D box (x1, y1, x2, y2 pixels) has an area: Label Studio cannot draw an
+    empty one, and `detmatch review import` refuses it."""
+    x1, y1, x2, y2 = (float(v) for v in box)
+    return x2 > x1 and y2 > y1
+
+
 def _label_studio(frames: list[_Frame], out: Path, prefix: str) -> int:
     tasks, count = [], 0
     classes = sorted(set(REVIEW_CLASSES) | {lb["class_2d"] for f in frames
@@ -375,8 +382,8 @@ def _label_studio(frames: list[_Frame], out: Path, prefix: str) -> int:
         width, height = Image.open(io.BytesIO(frame.image_png)).size
         results, scores = [], []
         for index, label in enumerate(frame.selected.labels["labels"]):
-            if label["box_2d"] is None:
-                continue
+            if label["box_2d"] is None or not drawable(label["box_2d"]):
+                continue  # no 2D box, or an empty one (a degenerate detection): nothing to draw
             results.append(
                 rectangle_result(
                     f"{frame.id}-{index}",

@@ -52,7 +52,7 @@ from PIL import Image, UnidentifiedImageError
 
 from detmatch.constants import RETRAIN_LOCK_HELD_EXIT, REVIEW_CLASSES
 from serving.repository import served_version
-from serving.review import rectangle_result
+from serving.review import drawable, rectangle_result
 from serving.reviews import ReviewImportError, label_studio_items, store_reviews
 
 log = logging.getLogger("detmatch.review.backend")
@@ -273,8 +273,8 @@ class Backend:
                 continue
             score = float(detections.scores[index])
             box = np.clip(detections.boxes[index], 0, [width, height, width, height])
-            if box[2] <= box[0] or box[3] <= box[1]:
-                continue  # wholly beyond the image's edge: no region to draw
+            if not drawable(box):
+                continue  # wholly beyond the image's edge, or empty: no region to draw
             results.append(rectangle_result(f"p{index}", box.tolist(), name, score,
                                             (width, height), from_name=interface.from_name,
                                             to_name=interface.to_name))  # fmt: skip

@@ -35,7 +35,7 @@ import numpy as np
 
 from detmatch.constants import REVIEW_3D_FORMATS, REVIEW_CLASSES
 from detmatch.files import atomic_write_bytes, fsync_path
-from serving.review import DATUMARO_FORMAT, calib_of, camera_matrices, check_format
+from serving.review import DATUMARO_FORMAT, calib_of, camera_matrices, check_format, drawable
 from serving.store_export import NAMESPACE_SEPARATOR, Store, list_frames, read_frame
 from serving.store_index import store_files_root
 
@@ -183,7 +183,7 @@ def _check_label(item_id: str, label: dict, known: set[str], problems: list[str]
             return
     if box_3d is not None and min(box_3d[3:6]) <= 0:
         problems.append(f"{item_id}: a {label['class']} 3D box has a size <= 0: {box_3d[3:6]}")
-    if box_2d is not None and (box_2d[2] <= box_2d[0] or box_2d[3] <= box_2d[1]):
+    if box_2d is not None and not drawable(box_2d):
         problems.append(f"{item_id}: a {label['class']} 2D box is empty: {box_2d}")
 
 

@@ -6,6 +6,7 @@ disagreement), and the disagreement signals one by one."""
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 
@@ -23,6 +24,7 @@ from serving.review import (  # noqa: E402
     DATUMARO_FORMAT,
     camera_matrices,
     disagreement,
+    drawable,
     export_review,
     select_frames,
 )
@@ -126,7 +128,8 @@ def test_label_studio_tasks_carry_the_stored_2d_boxes_as_predictions(store, tmp_
         assert (out / "images" / f"{task['data']['frame']}.png").is_file()
         (prediction,) = task["predictions"]
         assert prediction["model_version"] == "000001"
-        boxes = [lb for lb in selected.labels["labels"] if lb["box_2d"] is not None]
+        boxes = [lb for lb in selected.labels["labels"]
+                 if lb["box_2d"] is not None and drawable(lb["box_2d"])]  # fmt: skip
         assert len(prediction["result"]) == len(boxes)
         for result, label in zip(prediction["result"], boxes, strict=True):
             value = result["value"]
@@ -135,6 +138,24 @@ def test_label_studio_tasks_carry_the_stored_2d_boxes_as_predictions(store, tmp_
             x2, y2 = x1 + value["width"] * width / 100, y1 + value["height"] * height / 100
             np.testing.assert_allclose([x1, y1, x2, y2], label["box_2d"], atol=1e-6)
             assert value["rectanglelabels"] == [label["class_2d"]]
+
+
+def test_an_empty_2d_box_is_left_out_of_the_label_studio_tasks(store, tmp_path):
+    # A degenerate detection (zero width, as a tiny model can give) cannot be drawn, and the
+    # import would refuse it when the reviewer's export brings it back: it is left out.
+    selections = copy.deepcopy(select_frames(store))
+    labels = next(s for s in selections if s.labels["labels"]).labels["labels"]
+    x1, y1, _, y2 = labels[0]["box_2d"] or (10.0, 20.0, 0.0, 40.0)
+    labels[0]["box_2d"] = [x1, y1, x1, y2]
+    assert not drawable(labels[0]["box_2d"]) and drawable([x1, y1, x1 + 0.5, y2])
+    out = tmp_path / "ls"
+    export_review(store, out, "label-studio", selections)
+    tasks = json.loads((out / "tasks.json").read_text())
+    results = [r for task in tasks for r in task["predictions"][0]["result"]]
+    want = sum(lb["box_2d"] is not None and drawable(lb["box_2d"])
+               for s in selections for lb in s.labels["labels"])  # fmt: skip
+    assert len(results) == want
+    assert all(r["value"]["width"] > 0 and r["value"]["height"] > 0 for r in results)
 
 
 def test_selections_pick_an_audit_sample_and_the_least_sure_frames(store, tmp_path, capsys):
