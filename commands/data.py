@@ -84,8 +84,8 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
                         help="full = 1242x375 (KITTI), half = 621x188")  # fmt: skip
     parser.add_argument(
         "--world", choices=sorted(WORLDS), default=DEFAULT_WORLD,
-        help="world version: how the sensors fail (v2 on, being calibrated to KITTI's "
-        "trade-off: people clearer to the camera than to the LiDAR; docs/data.md)",
+        help="world version: how the sensors fail (v3: frozen as the world calibrated to "
+        "KITTI's trade-off, people clearer to the camera than to the LiDAR; docs/data.md)",
     )  # fmt: skip
     parser.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     parser.add_argument("--val-fraction", type=float, default=0.25,
